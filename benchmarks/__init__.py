@@ -1,0 +1,1 @@
+"""Benchmarks: each ``bench_*.py`` has ``run() -> dict``; ``make bench`` prints them as JSON."""

@@ -1,0 +1,1 @@
+"""Subcommands of ``softshape``: one module per area, each with ``register(subparsers)``."""

@@ -1,0 +1,155 @@
+"""
+What every softshape node shares: start/stop, QoS, image and stamp conversion, diagnostics.
+
+Nodes stay thin adapters (parameters in, core call, message out); the pieces here are
+the adapters' adapters, so that each node file reads like ros2/demos' talker/listener.
+"""
+
+from __future__ import annotations
+
+import signal
+import sys
+from typing import Callable
+
+import numpy as np
+import rclpy
+from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.executors import (ExternalShutdownException, MultiThreadedExecutor,
+                             SingleThreadedExecutor)
+from rclpy.node import Node
+from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
+                       qos_profile_sensor_data)
+from sensor_msgs.msg import Image
+
+from softshape_ros.config import RigConfig, load_rig_config
+
+#: Camera images: the sensor-data profile (best effort, keep last 5), as DESIGN.md says.
+SENSOR_QOS = qos_profile_sensor_data
+#: Commands, measurements, triggers: reliable, modest depth.
+RELIABLE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
+                          history=HistoryPolicy.KEEP_LAST)
+#: The scene description is latched so late joiners (recorder, inference) get it.
+LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL,
+                         history=HistoryPolicy.KEEP_LAST)
+
+OK, WARN, ERROR, STALE = (DiagnosticStatus.OK, DiagnosticStatus.WARN,
+                          DiagnosticStatus.ERROR, DiagnosticStatus.STALE)
+
+
+def declare_rig_config(node: Node) -> RigConfig:
+    """Declare the ``config_file`` parameter ('' = the package's rig.yaml) and load it."""
+    path = node.declare_parameter('config_file', '').value
+    return load_rig_config(path or None)
+
+
+def stamp_to_ns(stamp: Time) -> int:
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def ns_to_stamp(ns: int) -> Time:
+    return Time(sec=int(ns // 1_000_000_000), nanosec=int(ns % 1_000_000_000))
+
+
+_ENCODINGS = {'mono8': 1, 'rgb8': 3, 'bgr8': 3}
+
+
+def numpy_to_image(array: np.ndarray, stamp: Time, frame_id: str, encoding: str = '') -> Image:
+    """H x W (mono8) or H x W x 3 (rgb8) uint8 -> sensor_msgs/Image (no cv_bridge needed)."""
+    a = np.ascontiguousarray(array)
+    if a.dtype != np.uint8:
+        raise ValueError(f'image must be uint8, got {a.dtype}')
+    if a.ndim == 3 and a.shape[2] == 1:
+        a = a[:, :, 0]
+    if not encoding:
+        encoding = 'mono8' if a.ndim == 2 else 'rgb8'
+    ch = _ENCODINGS.get(encoding)
+    if ch is None or (a.ndim == 2) != (ch == 1) or (a.ndim == 3 and a.shape[2] != ch):
+        raise ValueError(f'array of shape {a.shape} does not fit encoding {encoding}')
+    msg = Image()
+    msg.header.stamp = stamp
+    msg.header.frame_id = frame_id
+    msg.height, msg.width = int(a.shape[0]), int(a.shape[1])
+    msg.encoding = encoding
+    msg.is_bigendian = 0
+    msg.step = msg.width * ch
+    msg.data = a.tobytes()
+    return msg
+
+
+def image_to_numpy(msg: Image) -> np.ndarray:
+    """sensor_msgs/Image -> H x W or H x W x 3 RGB uint8; raises ValueError on bad messages."""
+    ch = _ENCODINGS.get(msg.encoding)
+    if ch is None:
+        raise ValueError(f'unsupported image encoding {msg.encoding!r} (use mono8/rgb8/bgr8)')
+    row = msg.width * ch
+    if msg.step < row or len(msg.data) < msg.step * msg.height or msg.height == 0:
+        raise ValueError(f'image {msg.width}x{msg.height} {msg.encoding}: step {msg.step} '
+                         f'and {len(msg.data)} data bytes do not match')
+    buf = np.frombuffer(bytes(msg.data), dtype=np.uint8)[: msg.step * msg.height]
+    a = buf.reshape(msg.height, msg.step)[:, :row]
+    if ch == 1:
+        return a.copy()
+    a = a.reshape(msg.height, msg.width, 3)
+    return a[:, :, ::-1].copy() if msg.encoding == 'bgr8' else a.copy()
+
+
+def diagnostic_status(name: str, hardware_id: str, level, message: str,
+                      values: dict) -> DiagnosticStatus:
+    st = DiagnosticStatus()
+    st.level = bytes([level]) if isinstance(level, int) else level
+    st.name, st.hardware_id, st.message = name, hardware_id, message
+    st.values = [KeyValue(key=str(k), value=str(v)) for k, v in values.items()]
+    return st
+
+
+def publish_diagnostics(node: Node, publisher, statuses: list[DiagnosticStatus]) -> None:
+    arr = DiagnosticArray()
+    arr.header.stamp = node.get_clock().now().to_msg()
+    arr.status = statuses
+    publisher.publish(arr)
+
+
+def run_node(factory: Callable[[], Node], args=None, multithreaded: bool = False) -> int:
+    """
+    Init rclpy, spin the node until SIGINT/SIGTERM, clean up, return the exit code.
+
+    Nodes may define ``on_shutdown()`` (e.g. vent the pressures); it runs after spinning
+    stops and before the node is destroyed, whatever stopped it.
+    """
+    rclpy.init(args=args)
+    node = None
+    code = 0
+    try:
+        node = factory()
+        executor = MultiThreadedExecutor() if multithreaded else SingleThreadedExecutor()
+        executor.add_node(node)
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except Exception as exc:  # a clear message, not a traceback wall, and a failing exit code
+        name = node.get_name() if node is not None else 'softshape'
+        print(f'[{name}] fatal: {exc}', file=sys.stderr)
+        code = 1
+    finally:
+        if node is not None:
+            hook = getattr(node, 'on_shutdown', None)
+            if hook is not None:
+                try:
+                    hook()
+                except Exception as exc:
+                    print(f'[{node.get_name()}] shutdown hook failed: {exc}', file=sys.stderr)
+                    code = code or 1
+            node.destroy_node()
+        if rclpy.ok():
+            rclpy.try_shutdown()
+    return code
+
+
+def main_wrapper(factory: Callable[[], Node]) -> Callable[[], int]:
+    """Build a console-script ``main`` that exits with run_node's code (SIGTERM like SIGINT)."""
+    def main(args=None) -> int:
+        signal.signal(signal.SIGTERM, signal.default_int_handler)
+        sys.exit(run_node(factory, args=args))
+    return main

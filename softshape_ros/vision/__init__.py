@@ -1,0 +1,1 @@
+"""Vision (no rclpy): capture sources, preprocessing, overlays."""
