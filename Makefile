@@ -45,7 +45,7 @@ build: install/.stamp
 # executables land in install/lib/softshape_ros/, where `ros2 run` looks.
 install/.stamp: $(VENV)/.stamp setup.py setup.cfg package.xml $(SOURCES)
 	$(VENV)/bin/colcon --log-base log build --merge-install --base-paths . \
-		--build-base build --install-base install --event-handlers console_cohesion- summary-
+		--build-base build --install-base install --event-handlers console_direct-
 	@touch $@
 
 demo: build

@@ -92,6 +92,8 @@ class TopicsConfig:
     pressure_command: str
     pressure_measured: str
     trigger: str
+    sample: str
+    capture_time: str
     scene: str
     camera_image: str
     camera_info: str
@@ -239,7 +241,8 @@ def _check_consistency(cfg: RigConfig) -> None:
         d = [a - b for a, b in zip(cam.look_at_m, cam.position_m)]
         if math.sqrt(sum(v * v for v in d)) == 0.0:
             raise ConfigError(f'cameras.{name}.look_at_m: equals position_m')
-    for tname in ('camera_image', 'camera_info', 'predicted_image', 'predicted_overlay'):
+    for tname in ('camera_image', 'camera_info', 'capture_time', 'predicted_image',
+                  'predicted_overlay'):
         if '{camera}' not in getattr(cfg.topics, tname):
             raise ConfigError(f'topics.{tname}: must contain the placeholder {{camera}}')
 

@@ -1,0 +1,1 @@
+"""Hardware (no rclpy): pressure command safety, serial protocol, link, virtual Due."""

@@ -1,0 +1,70 @@
+"""
+Pressure command safety and the regulator model, shared by host, mock and inference.
+
+Every path that turns a number into air (pressure_bridge, mock_hardware) and every path
+that predicts from one (inference) checks commands the same way: 6 values, finite, not
+negative; above a chamber's limit is clamped and reported, never silently passed on.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+N_CHAMBERS = 6
+
+
+class CommandError(ValueError):
+    """A pressure command is unusable (wrong length, NaN/inf, negative); nothing is applied."""
+
+
+@dataclass(frozen=True)
+class CheckedCommand:
+    pressures_pa: np.ndarray        # float64[6], clamped to the limits
+    clamped: tuple                  # indices of chambers that were clamped
+
+
+def check_command(values, limits_pa) -> CheckedCommand:
+    """Validate a 6-chamber command in Pa and clamp it to ``limits_pa``."""
+    try:
+        v = [float(x) for x in values]
+    except (TypeError, ValueError):
+        raise CommandError(f'pressure command must be numbers, got {values!r}') from None
+    if len(v) != N_CHAMBERS:
+        raise CommandError(f'pressure command needs {N_CHAMBERS} values, got {len(v)}')
+    bad = [i for i, x in enumerate(v) if not math.isfinite(x)]
+    if bad:
+        raise CommandError(f'pressure command has non-finite values at chambers {bad}: {v}')
+    neg = [i for i, x in enumerate(v) if x < 0.0]
+    if neg:
+        raise CommandError(f'pressure command has negative values at chambers {neg}: {v}')
+    lim = np.asarray(limits_pa, dtype=np.float64)
+    if lim.shape != (N_CHAMBERS,):
+        raise CommandError(f'limits need {N_CHAMBERS} values, got {lim.shape}')
+    arr = np.asarray(v, dtype=np.float64)
+    clamped = tuple(int(i) for i in np.nonzero(arr > lim)[0])
+    return CheckedCommand(np.minimum(arr, lim), clamped)
+
+
+class FirstOrderRegulator:
+    """
+    Proportional pressure regulators as first-order lags (time constant ``tau_s``).
+
+    Stands in for six Camozzi K8P regulators in the virtual Due and the mock hardware.
+    """
+
+    def __init__(self, tau_s: float = 0.05, n: int = N_CHAMBERS):
+        if tau_s < 0:
+            raise ValueError(f'tau_s must be >= 0, got {tau_s}')
+        self.tau_s = float(tau_s)
+        self.setpoint = np.zeros(n)
+        self.pressure = np.zeros(n)
+
+    def step(self, dt: float) -> np.ndarray:
+        """Advance ``dt`` seconds (exact discretisation of the lag) and return the pressures."""
+        if dt > 0:
+            a = 1.0 if self.tau_s == 0 else 1.0 - math.exp(-dt / self.tau_s)
+            self.pressure += a * (self.setpoint - self.pressure)
+        return self.pressure.copy()

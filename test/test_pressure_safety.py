@@ -1,0 +1,50 @@
+"""Command validation and clamping: the one gate between a number and the air supply."""
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, strategies as st
+
+from softshape_ros.hardware.pressure import CommandError, FirstOrderRegulator, check_command
+
+LIM = [100e3] * 3 + [50e3] * 3
+
+
+def test_clamps_and_reports():
+    c = check_command([0, 10e3, 200e3, 0, 60e3, 50e3], LIM)
+    assert c.pressures_pa.tolist() == [0, 10e3, 100e3, 0, 50e3, 50e3]
+    assert c.clamped == (2, 4)
+
+
+@pytest.mark.parametrize('bad, match', [
+    ([0] * 5, 'needs 6 values, got 5'),
+    ([0] * 7, 'needs 6 values, got 7'),
+    ([0, 0, float('nan'), 0, 0, 0], 'non-finite values at chambers \\[2\\]'),
+    ([0, 0, 0, float('inf'), 0, 0], 'non-finite'),
+    ([0, -1, 0, 0, 0, 0], 'negative values at chambers \\[1\\]'),
+    (['a'] * 6, 'must be numbers'),
+    (None, 'must be numbers'),
+])
+def test_rejects_bad_commands(bad, match):
+    with pytest.raises(CommandError, match=match):
+        check_command(bad, LIM)
+
+
+@given(st.lists(st.floats(allow_nan=True, allow_infinity=True), min_size=0, max_size=8))
+def test_never_passes_anything_outside_limits(values):
+    try:
+        c = check_command(values, LIM)
+    except CommandError:
+        return
+    assert np.all(c.pressures_pa >= 0) and np.all(c.pressures_pa <= np.asarray(LIM))
+
+
+def test_regulator_is_first_order():
+    r = FirstOrderRegulator(tau_s=0.1)
+    r.setpoint[:] = 1000.0
+    p = r.step(0.1)
+    assert p[0] == pytest.approx(1000.0 * (1 - math.exp(-1)))
+    for _ in range(100):
+        p = r.step(0.01)
+    assert p[0] == pytest.approx(1000.0, rel=1e-4)
