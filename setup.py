@@ -30,6 +30,7 @@ setup(
         ('share/' + package_name, ['package.xml']),
         ('share/' + package_name + '/config', glob('config/*.yaml')),
         ('share/' + package_name + '/config/params', glob('config/params/*.yaml')),
+        ('share/' + package_name + '/config/camera_info', glob('config/camera_info/*.yaml')),
         ('share/' + package_name + '/launch', glob('launch/*.py')),
     ],
     install_requires=['setuptools'],

@@ -1,0 +1,165 @@
+"""camera_trigger over real rclpy: the current frame per trigger, stamps, diagnostics, recovery."""
+
+import random
+import threading
+import time
+
+import pytest
+from rclpy.parameter import Parameter
+
+pytestmark = pytest.mark.ros
+
+
+class Probe:
+    """Publish triggers; collect images, capture times and diagnostics of one camera."""
+
+    def __init__(self, ros, camera='main'):
+        from diagnostic_msgs.msg import DiagnosticArray
+        from sensor_msgs.msg import CameraInfo, Image, TimeReference
+        from std_msgs.msg import Header
+
+        from softshape_ros.config import load_rig_config
+        from softshape_ros.nodes.common import RELIABLE_QOS, SENSOR_QOS
+        t = load_rig_config().topics
+        self.node = ros.node(f'probe_{camera}_{random.randrange(10**6)}')
+        self.lock = threading.Lock()
+        self.images, self.infos, self.times, self.diags = [], [], [], []
+        self.trigger_pub = self.node.create_publisher(Header, t.trigger, RELIABLE_QOS)
+        self.node.create_subscription(Image, t.camera('camera_image', camera),
+                                      lambda m: self._add(self.images, m), SENSOR_QOS)
+        self.node.create_subscription(CameraInfo, t.camera('camera_info', camera),
+                                      lambda m: self._add(self.infos, m), SENSOR_QOS)
+        self.node.create_subscription(TimeReference, t.camera('capture_time', camera),
+                                      lambda m: self._add(self.times, m), RELIABLE_QOS)
+        self.node.create_subscription(
+            DiagnosticArray, t.diagnostics,
+            lambda m: self._add(self.diags, [s for s in m.status
+                                             if s.name == f'camera_trigger: {camera}']),
+            RELIABLE_QOS)
+        self.Header = Header
+
+    def _add(self, where, msg):
+        with self.lock:
+            if isinstance(msg, list):
+                where.extend(msg)
+            else:
+                where.append(msg)
+
+    def trigger(self, stamp_ns=None):
+        from softshape_ros.nodes.common import ns_to_stamp
+        ns = time.time_ns() if stamp_ns is None else stamp_ns
+        h = self.Header()
+        h.stamp = ns_to_stamp(ns)
+        self.trigger_pub.publish(h)
+        return ns
+
+    def last_level(self):
+        with self.lock:
+            return self.diags[-1].level[0] if self.diags else None
+
+
+def _camera(ros, **params):
+    from softshape_ros.nodes.camera_trigger import CameraTrigger
+    base = {'camera_name': 'main', 'reconnect_period_s': 0.2, 'diagnostics_period_s': 0.2}
+    base.update(params)
+    node = CameraTrigger(parameter_overrides=[Parameter(k, value=v) for k, v in base.items()])
+    return ros.add(node)
+
+
+def _wait_matched(ros, probe, node):
+    ros.wait_for(lambda: probe.trigger_pub.get_subscription_count() >= 1
+                 and node.pub_image.get_subscription_count() >= 1
+                 and node.pub_time.get_subscription_count() >= 1, what='discovery')
+
+
+def _run_triggers(ros, probe, fps, n, rng):
+    from softshape_ros.nodes.common import stamp_to_ns
+    from softshape_ros.vision.patterns import decode_index
+    from softshape_ros.nodes.common import image_to_numpy
+    sent = []
+    for _ in range(n):
+        sent.append(probe.trigger())
+        ros.wait_for(lambda: len(probe.times) >= len(sent), timeout=5, what='capture time')
+        time.sleep(rng.uniform(0.01, 0.12))
+    ros.wait_for(lambda: len(probe.images) >= n and len(probe.infos) >= n, timeout=5,
+                 what='images')
+    with probe.lock:
+        images = {stamp_to_ns(m.header.stamp): m for m in probe.images}
+        times = {stamp_to_ns(m.header.stamp): stamp_to_ns(m.time_ref) for m in probe.times}
+        infos = [stamp_to_ns(m.header.stamp) for m in probe.infos]
+    assert sorted(images) == sorted(sent) == sorted(times) == sorted(infos)
+    assert len(probe.images) == n
+    for stamp in sent:
+        msg = images[stamp]
+        assert msg.header.frame_id == 'camera_main_optical_frame' and msg.encoding == 'rgb8'
+        capture_ns = times[stamp]
+        assert capture_ns >= stamp              # captured after the trigger: never stale
+        expected = int((capture_ns * fps) // 1_000_000_000) % 12
+        assert decode_index(image_to_numpy(msg)) == expected
+    return sent
+
+
+@pytest.mark.parametrize('kind', ['video', 'folder'])
+def test_trigger_gets_the_frame_current_at_the_trigger(ros, tmp_path, kind):
+    from softshape_ros.vision.patterns import write_folder, write_video
+    fps = 10.0
+    if kind == 'video':
+        src = write_video(tmp_path / 'clip.avi', 12, fps=fps)
+    else:
+        src = write_folder(tmp_path / 'frames', 12)
+    probe = Probe(ros)
+    node = _camera(ros, source=str(src), fps=fps)
+    _wait_matched(ros, probe, node)
+    _run_triggers(ros, probe, fps, 10, random.Random(1))
+    info = probe.infos[-1]
+    assert (info.width, info.height) == (160, 120)        # calibration scaled to the frames
+    assert info.k[0] == pytest.approx(1400.0 / 4)
+
+    def values():
+        with probe.lock:
+            return {kv.key: kv.value for kv in probe.diags[-1].values} if probe.diags else {}
+    ros.wait_for(lambda: values().get('frames') == '10', what='diagnostics counting 10 frames')
+    assert probe.last_level() == 0
+    assert "'n': 10" in values()['trigger_to_capture_ms']
+
+
+def test_vanished_folder_gives_error_then_recovers(ros, tmp_path):
+    from softshape_ros.vision.patterns import write_folder
+    folder = write_folder(tmp_path / 'frames', 12)
+    probe = Probe(ros)
+    node = _camera(ros, source=str(folder), fps=10.0)
+    _wait_matched(ros, probe, node)
+    probe.trigger()
+    ros.wait_for(lambda: len(probe.images) == 1, what='first image')
+    folder.rename(tmp_path / 'gone')
+    lost = probe.trigger()
+    ros.wait_for(lambda: probe.last_level() == 2, what='diagnostics ERROR')
+    assert 'no camera' in probe.diags[-1].message
+    probe.trigger()                            # still gone: answered with nothing, no crash
+    time.sleep(0.5)
+    (tmp_path / 'gone').rename(folder)
+    ros.wait_for(lambda: probe.last_level() == 0, what='diagnostics OK after recovery')
+    back = probe.trigger()
+    ros.wait_for(lambda: len(probe.images) == 2, what='image after recovery')
+    from softshape_ros.nodes.common import stamp_to_ns
+    stamps = [stamp_to_ns(m.header.stamp) for m in probe.images]
+    assert lost not in stamps and stamps[-1] == back
+    assert node.reconnects == 1 and node.dropped == 2
+
+
+def test_no_camera_reports_error_and_late_triggers_are_dropped(ros, tmp_path):
+    from softshape_ros.vision.patterns import write_video
+    probe = Probe(ros)
+    node = _camera(ros, source='/dev/video97')
+    ros.wait_for(lambda: probe.last_level() == 2, what='diagnostics ERROR')
+    assert 'no such device' in probe.diags[-1].message
+    probe.trigger()
+    ros.wait_for(lambda: node.dropped == 1, what='trigger counted as dropped')
+    assert probe.images == []
+    # a live source, but a trigger from 2 s ago: no frame under that stamp
+    node2 = _camera(ros, source=str(write_video(tmp_path / 'c.avi', 12, fps=10.0)),
+                    max_trigger_age_s=0.5)
+    _wait_matched(ros, probe, node2)
+    probe.trigger(time.time_ns() - 2_000_000_000)
+    ros.wait_for(lambda: node2.dropped == 1, what='late trigger dropped')
+    assert probe.images == []
