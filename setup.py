@@ -31,7 +31,7 @@ setup(
         ('share/' + package_name + '/config', glob('config/*.yaml')),
         ('share/' + package_name + '/config/params', glob('config/params/*.yaml')),
         ('share/' + package_name + '/config/camera_info', glob('config/camera_info/*.yaml')),
-        ('share/' + package_name + '/launch', glob('launch/*.py')),
+        ('share/' + package_name + '/launch', glob('launch/*.launch.*')),
     ],
     install_requires=['setuptools'],
     zip_safe=True,
