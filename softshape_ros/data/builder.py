@@ -1,0 +1,270 @@
+"""
+Recorded bags -> the project's dataset (``softshape build-dataset``).
+
+A sample is keyed by its trigger stamp: the collector announces it on ``/rig/sample``
+(scene, rest/actuation, settled) and fires ``/rig/trigger``; each camera stamps its frame
+and its capture-time report with the same stamp. Pairing is by exact stamp only, so a
+missing frame drops the sample instead of borrowing a neighbour's. The measured pressure
+is the JointState nearest the trigger within ``collection.pressure_match_s``. Images are
+preprocessed as they are read (crop, gray, 64x64), so memory holds only small arrays.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from bisect import bisect_left
+from collections import Counter, defaultdict
+from pathlib import Path
+
+import numpy as np
+from rosbags.rosbag2 import Reader
+from tqdm import tqdm
+
+from softshape_ros.data.bag_tools import bag_info
+from softshape_ros.data.bag_writer import BagError, jazzy_typestore
+from softshape_ros.data.dataset import DatasetWriter
+from softshape_ros.scene import Scene, SceneError
+from softshape_ros.vision.preprocess import ImageError, preprocess, scale_crop
+
+_CHANNELS = {'mono8': 1, 'rgb8': 3, 'bgr8': 3}
+
+
+def _ns(stamp) -> int:
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def decode_image(msg) -> np.ndarray:
+    """Decode a rosbags sensor_msgs/Image to H x W (x 3 RGB) uint8; ValueError if malformed."""
+    ch = _CHANNELS.get(msg.encoding)
+    if ch is None:
+        raise ValueError(f'unsupported encoding {msg.encoding!r}')
+    row = msg.width * ch
+    data = np.asarray(msg.data, dtype=np.uint8)
+    if msg.height == 0 or msg.step < row or data.size < msg.step * msg.height:
+        raise ValueError(f'{msg.width}x{msg.height} {msg.encoding}: step {msg.step} and '
+                         f'{data.size} bytes do not match')
+    a = data[: msg.step * msg.height].reshape(msg.height, msg.step)[:, :row]
+    if ch == 1:
+        return a
+    a = a.reshape(msg.height, msg.width, 3)
+    return a[:, :, ::-1] if msg.encoding == 'bgr8' else a
+
+
+class _Session:
+    """Everything one bag says, indexed by trigger stamp."""
+
+    def __init__(self, cams):
+        self.samples = {}                      # stamp -> sample dict (from /rig/sample)
+        self.bad_samples = 0
+        self.triggers = set()
+        self.images = {c: defaultdict(list) for c in cams}   # stamp -> [preprocessed]
+        self.bad_images = {c: set() for c in cams}
+        self.capture = {c: {} for c in cams}                  # stamp -> time_ref ns
+        self.pressure = []                                    # (stamp, [6 Pa])
+        self.pressure_stamps = []
+        self.scenes = {}                                      # id -> Scene
+
+
+def _read_bag(path: Path, cfg, gray: bool, size: int, progress: bool) -> _Session:
+    info = bag_info(path)
+    if info['unfinished_files']:
+        raise BagError(f'{path}: unfinished files {info["unfinished_files"]} (crashed '
+                       f'recording?): run `softshape bag recover {path}` first')
+    t = cfg.topics
+    cams = cfg.camera_names
+    topic_role = {t.sample: ('sample', None), t.trigger: ('trigger', None),
+                  t.pressure_measured: ('pressure', None), t.scene: ('scene', None)}
+    for c in cams:
+        topic_role[t.camera('camera_image', c)] = ('image', c)
+        topic_role[t.camera('capture_time', c)] = ('capture', c)
+    s = _Session(cams)
+    ts = jazzy_typestore()
+    names = cfg.chamber_names
+    with Reader(path) as reader:
+        conns = [c for c in reader.connections if c.topic in topic_role]
+        total = sum(c.msgcount for c in conns)
+        bar = tqdm(total=total, desc=f'read {path.name}', unit='msg', disable=not progress)
+        for conn, _, raw in reader.messages(connections=conns):
+            bar.update(1)
+            role, cam = topic_role[conn.topic]
+            try:
+                msg = ts.deserialize_cdr(raw, conn.msgtype)
+            except Exception:
+                if role == 'sample':
+                    s.bad_samples += 1
+                continue
+            if role == 'trigger':
+                s.triggers.add(_ns(msg.stamp))
+            elif role == 'sample':
+                _add_sample(s, msg.data)
+            elif role == 'scene':
+                try:
+                    sc = Scene.from_json(msg.data)
+                    s.scenes[sc.id] = sc
+                except SceneError:
+                    pass
+            elif role == 'capture':
+                s.capture[cam][_ns(msg.header.stamp)] = _ns(msg.time_ref)
+            elif role == 'pressure':
+                p = _pressure(msg, names)
+                if p is not None:
+                    s.pressure.append((_ns(msg.header.stamp), p))
+            elif role == 'image':
+                stamp = _ns(msg.header.stamp)
+                cc = cfg.cameras[cam]
+                try:
+                    img = decode_image(msg)
+                    crop = cc.crop_px
+                    if (msg.width, msg.height) != (cc.width, cc.height):
+                        crop = scale_crop(crop, (cc.width, cc.height), (msg.width, msg.height))
+                    s.images[cam][stamp].append(preprocess(img, crop, size, gray))
+                except (ValueError, ImageError):
+                    s.bad_images[cam].add(stamp)
+        bar.close()
+    s.pressure.sort(key=lambda x: x[0])
+    s.pressure_stamps = [p[0] for p in s.pressure]
+    return s
+
+
+def _add_sample(s: _Session, text: str) -> None:
+    try:
+        d = json.loads(text)
+        stamp = int(d['stamp_ns'])
+        sample = {'stamp_ns': stamp, 'scene_id': int(d['scene_id']), 'kind': str(d['kind']),
+                  'index': int(d.get('index', -1)), 'settled': bool(d['settled']),
+                  'command_pa': [float(v) for v in d.get('command_pa', [])]}
+        if sample['kind'] not in ('rest', 'actuation'):
+            raise ValueError(sample['kind'])
+    except (ValueError, KeyError, TypeError):
+        s.bad_samples += 1
+        return
+    s.samples[stamp] = sample
+
+
+def _pressure(msg, names):
+    effort = [float(v) for v in msg.effort]
+    if list(msg.name):
+        if sorted(msg.name) != sorted(names) or len(effort) != len(msg.name):
+            return None
+        by = dict(zip(msg.name, effort))
+        effort = [by[n] for n in names]
+    if len(effort) != 6 or not all(math.isfinite(v) for v in effort):
+        return None
+    return effort
+
+
+def _nearest_pressure(s: _Session, stamp: int, bound_ns: int):
+    keys = s.pressure_stamps
+    i = bisect_left(keys, stamp)
+    best = None
+    for j in (i - 1, i):
+        if 0 <= j < len(keys):
+            d = abs(keys[j] - stamp)
+            if d <= bound_ns and (best is None or d < best[0]):
+                best = (d, s.pressure[j][1])
+    return None if best is None else best[1]
+
+
+def _check(s: _Session, stamp: int, cams, max_skew_ns: int):
+    """Return (images per camera, None) for a complete trigger, else (None, reason)."""
+    if stamp not in s.triggers:
+        return None, 'no_trigger'
+    imgs = []
+    for c in cams:
+        if stamp in s.bad_images[c]:
+            return None, f'bad_image_{c}'
+        got = s.images[c].get(stamp, [])
+        if not got:
+            return None, f'missing_camera_{c}'
+        if len(got) > 1:
+            return None, f'duplicate_frames_{c}'
+        imgs.append(got[0])
+    times = []
+    for c in cams:
+        if stamp not in s.capture[c]:
+            return None, f'missing_capture_time_{c}'
+        times.append(s.capture[c][stamp])
+    if max(times) - min(times) > max_skew_ns:
+        return None, 'capture_skew'
+    return np.stack(imgs), None
+
+
+def build_dataset(bags, out, cfg, gray=None, overwrite: bool = False, progress: bool = True):
+    """
+    Build a dataset folder from one or more bags; returns (Dataset, report).
+
+    The report (also in meta.json) counts triggers, kept samples, and drops by reason.
+    """
+    bags = [Path(b) for b in bags]
+    if not bags:
+        raise ValueError('no bags given')
+    gray = cfg.dataset.gray if gray is None else gray
+    size = cfg.dataset.image_size
+    cams = cfg.camera_names
+    max_skew_ns = int(cfg.collection.max_capture_skew_s * 1e9)
+    bound_ns = int(cfg.collection.pressure_match_s * 1e9)
+    dropped = Counter()
+    rows, scene_map, used_ids, triggers = [], [], set(), 0
+    for bag in bags:
+        s = _read_bag(bag, cfg, gray, size, progress)
+        dropped['malformed_sample_json'] += s.bad_samples
+        triggers += len(s.triggers)
+        # The rest images of each scene: its last complete, settled rest trigger.
+        rest = {}
+        for stamp in sorted(st for st, d in s.samples.items() if d['kind'] == 'rest'):
+            d = s.samples[stamp]
+            imgs, why = _check(s, stamp, cams, max_skew_ns)
+            if why is None and not d['settled']:
+                why = 'unsettled'
+            if why is not None:
+                dropped[f'rest_{why}'] += 1
+                continue
+            rest[d['scene_id']] = imgs
+        local_ids = {}
+        for stamp in sorted(st for st, d in s.samples.items() if d['kind'] == 'actuation'):
+            d = s.samples[stamp]
+            imgs, why = _check(s, stamp, cams, max_skew_ns)
+            p = None
+            if why is None and not d['settled']:
+                why = 'unsettled'
+            if why is None and d['scene_id'] not in s.scenes:
+                why = 'unknown_scene'
+            if why is None and d['scene_id'] not in rest:
+                why = 'no_rest_images'
+            if why is None:
+                p = _nearest_pressure(s, stamp, bound_ns)
+                if p is None:
+                    why = 'no_pressure'
+            if why is not None:
+                dropped[why] += 1
+                continue
+            sid = d['scene_id']
+            if sid not in local_ids:       # scene ids stay unique across bags
+                gid = sid if sid not in used_ids else max(used_ids) + 1
+                used_ids.add(gid)
+                local_ids[sid] = gid
+                scene_map.append({'bag': str(bag), 'scene_id': sid, 'index': gid,
+                                  'scene': json.loads(s.scenes[sid].to_json())})
+            rows.append((rest[sid], imgs, p, local_ids[sid], str(bag), stamp))
+        trig_without_sample = s.triggers - set(s.samples)
+        dropped['trigger_without_sample'] += len(trig_without_sample)
+    dropped = {k: v for k, v in dropped.items() if v}
+    channels = 1 if gray else 3
+    meta = {
+        'cameras': cams, 'gray': bool(gray),
+        'crop_px': {c: list(cfg.cameras[c].crop_px) for c in cams},
+        'pressure_unit': 'Pa', 'normalisation': 'pressure / max_pressure_pa',
+        'provenance': {'source': 'bags', 'bags': [str(b.resolve()) for b in bags],
+                       'config': cfg.source},
+        'triggers': triggers, 'kept': len(rows), 'dropped': dropped, 'scenes': scene_map,
+        'stamps_ns': [r[5] for r in rows],
+    }
+    w = DatasetWriter(out, len(rows), cams, channels, size, cfg.max_pressures_pa,
+                      meta=meta, overwrite=overwrite)
+    for i, (init, target, p, sid, _, _) in enumerate(
+            tqdm(rows, desc='write dataset', unit='sample', disable=not progress)):
+        w.put(i, init, target, p, sid)
+    ds = w.close()
+    report = {'triggers': triggers, 'kept': len(rows), 'dropped': dropped}
+    return ds, report

@@ -1,0 +1,235 @@
+"""
+recorder: write the rig's topics to a standard rosbag2 bag (MCAP, or sqlite3).
+
+Like ``ros2 bag record`` (which this environment lacks): topics by name list and regex,
+discovered while running, subscribed raw (CDR bytes, never deserialised) with a QoS that
+matches their publishers; one writer thread behind a bounded queue (softshape_ros.data.
+recording). Services ``~/pause``, ``~/resume``, ``~/split_bagfile`` (std_srvs/Trigger);
+``/diagnostics`` every second with messages, bytes, drops and the current file.
+"""
+
+from __future__ import annotations
+
+import datetime
+import importlib
+import re
+import signal
+from pathlib import Path
+
+from rclpy.node import Node
+from rclpy.qos import (DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile,
+                       ReliabilityPolicy)
+from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness,
+                                QosReliability, QosTime)
+from std_srvs.srv import Trigger
+from diagnostic_msgs.msg import DiagnosticArray
+
+from softshape_ros.data.bag_writer import BagError, BagWriter, TopicSpec
+from softshape_ros.data.recording import Recording
+from softshape_ros.nodes.common import (ERROR, OK, WARN, declare_rig_config,
+                                        diagnostic_status, main_wrapper, publish_diagnostics)
+
+
+def rig_topic_names(cfg) -> list[str]:
+    """Every topic the rig config names (per-camera templates expanded), minus predictions."""
+    t = cfg.topics
+    names = [t.pressure_command, t.pressure_measured, t.trigger, t.sample, t.scene,
+             t.diagnostics]
+    for cam in cfg.camera_names:
+        names += [t.camera('camera_image', cam), t.camera('camera_info', cam),
+                  t.camera('capture_time', cam)]
+    return names
+
+
+def message_class(msgtype: str):
+    """'sensor_msgs/msg/Image' -> the rclpy message class (its type support)."""
+    pkg, kind, name = msgtype.split('/')
+    return getattr(importlib.import_module(f'{pkg}.{kind}'), name)
+
+
+def _rb_time(d) -> QosTime:
+    return QosTime(int(d.nanoseconds // 1_000_000_000), int(d.nanoseconds % 1_000_000_000))
+
+
+def to_rosbags_qos(q) -> Qos:
+    """Convert an rclpy QoSProfile to the rosbags Qos stored as offered_qos_profiles."""
+    return Qos(QosHistory[q.history.name], int(q.depth), QosReliability[q.reliability.name],
+               QosDurability[q.durability.name], _rb_time(q.deadline), _rb_time(q.lifespan),
+               QosLiveliness[q.liveliness.name], _rb_time(q.liveliness_lease_duration),
+               bool(q.avoid_ros_namespace_conventions))
+
+
+def adapted_qos(offered: list, depth: int) -> QoSProfile:
+    """
+    Choose a subscription QoS every publisher is compatible with (as rosbag2 does).
+
+    Reliable only if all publishers are reliable; transient-local only if all are,
+    so latched topics (the scene) deliver their last message to the recorder too.
+    """
+    reliable = bool(offered) and all(q.reliability == ReliabilityPolicy.RELIABLE
+                                     for q in offered)
+    latched = bool(offered) and all(q.durability == DurabilityPolicy.TRANSIENT_LOCAL
+                                    for q in offered)
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST, depth=depth,
+        reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE,
+        liveliness=LivelinessPolicy.AUTOMATIC)
+
+
+class Recorder(Node):
+    """Record matching topics into one bag until shut down."""
+
+    def __init__(self, **kwargs):
+        super().__init__('recorder', **kwargs)
+        # A file-size limit (ulimit -f) must become a write error, not a killed process.
+        if hasattr(signal, 'SIGXFSZ'):
+            try:
+                signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+            except ValueError:      # not the main thread (tests): nothing to change
+                pass
+        cfg = declare_rig_config(self)
+        p = self.declare_parameter
+        output = p('output', '').value
+        self.storage = p('storage', 'mcap').value
+        self.topic_list = list(p('topics', ['']).value)
+        self.topic_list = [t for t in self.topic_list if t]
+        regex = p('regex', '').value
+        exclude = p('exclude_regex', '').value
+        self.include_rig = bool(p('rig_topics', True).value)
+        self.all_topics = bool(p('all_topics', False).value)
+        max_mb = float(p('max_bag_size_mb', 0.0).value)
+        max_s = float(p('max_bag_duration_s', 0.0).value)
+        flush_s = float(p('flush_interval_s', 1.0).value)
+        fsync = bool(p('fsync', False).value)
+        qmsgs = int(p('queue_messages', 2000).value)
+        qmb = float(p('queue_mb', 512.0).value)
+        compression = p('compression', 'none').value
+        self.depth = int(p('qos_depth', 50).value)
+        discovery_s = float(p('discovery_period_s', 0.5).value)
+        diag_s = float(p('diagnostics_period_s', 1.0).value)
+        try:
+            self.regex = re.compile(regex) if regex else None
+            self.exclude = re.compile(exclude) if exclude else None
+        except re.error as exc:
+            raise ValueError(f'regex parameter is not a valid regular expression: {exc}') from None
+        self.wanted = set(self.topic_list)
+        if self.include_rig:
+            self.wanted |= set(rig_topic_names(cfg))
+        if not output:
+            stamp = datetime.datetime.now().strftime('%Y_%m_%d-%H_%M_%S')
+            output = f'rosbag2_{stamp}'
+        self.bag_path = Path(output).expanduser().resolve()
+        writer = BagWriter(self.bag_path, storage=self.storage, compression=compression,
+                           max_bytes=int(max_mb * 2**20), max_duration_s=max_s, fsync=fsync)
+        self.recording = Recording(writer, queue_messages=qmsgs, queue_bytes=int(qmb * 2**20),
+                                   flush_interval_s=flush_s)
+        self.subs = {}
+        self.skipped = {}            # topic -> why it is not recorded
+        self.diag_pub = self.create_publisher(DiagnosticArray, cfg.topics.diagnostics, 10)
+        self.create_service(Trigger, '~/pause', self._pause)
+        self.create_service(Trigger, '~/resume', self._resume)
+        self.create_service(Trigger, '~/split_bagfile', self._split)
+        self.create_timer(discovery_s, self._discover)
+        self.create_timer(diag_s, self._diagnose)
+        self._reported_error = ''
+        self.get_logger().info(f'recording to {self.bag_path} ({self.storage})')
+        self._discover()
+
+    # -- topics ----------------------------------------------------------------------------
+    def matches(self, topic: str) -> bool:
+        if self.exclude is not None and self.exclude.search(topic):
+            return False
+        if topic in self.wanted or self.all_topics:
+            return True
+        return self.regex is not None and self.regex.search(topic) is not None
+
+    def _discover(self) -> None:
+        for topic, types in self.get_topic_names_and_types():
+            if topic in self.subs or topic in self.skipped or not self.matches(topic):
+                continue
+            if len(types) != 1:
+                self._skip(topic, f'{len(types)} types on one topic: {types}')
+                continue
+            msgtype = types[0]
+            offered = [i.qos_profile for i in self.get_publishers_info_by_topic(topic)]
+            if not offered:
+                continue                    # only subscribers so far: wait for a publisher
+            try:
+                spec = TopicSpec.from_typestore(topic, msgtype,
+                                                [to_rosbags_qos(q) for q in offered])
+                cls = message_class(msgtype)
+            except (BagError, ImportError, AttributeError, ValueError) as exc:
+                self._skip(topic, f'cannot record {msgtype}: {exc}')
+                continue
+            self.recording.add_topic(spec)
+            self.subs[topic] = self.create_subscription(
+                cls, topic, self._callback(topic), adapted_qos(offered, self.depth), raw=True)
+            self.get_logger().info(f'recording {topic} [{msgtype}]')
+
+    def _skip(self, topic: str, why: str) -> None:
+        self.skipped[topic] = why
+        self.get_logger().warn(f'not recording {topic}: {why}')
+
+    def _callback(self, topic: str):
+        offer = self.recording.offer
+        clock = self.get_clock()
+
+        def cb(data, info):
+            t = info.get('received_timestamp') if isinstance(info, dict) else None
+            offer(topic, t or clock.now().nanoseconds, data)
+        return cb
+
+    # -- services --------------------------------------------------------------------------
+    def _pause(self, req, res):
+        self.recording.pause()
+        res.success, res.message = True, 'paused'
+        return res
+
+    def _resume(self, req, res):
+        self.recording.resume()
+        res.success, res.message = True, 'recording'
+        return res
+
+    def _split(self, req, res):
+        st = self.recording.stats()
+        if st['error']:
+            res.success, res.message = False, st['error']
+            return res
+        self.recording.split()
+        res.success, res.message = True, f'split requested (was {st["current_file"]})'
+        return res
+
+    # -- diagnostics -----------------------------------------------------------------------
+    def _diagnose(self) -> None:
+        st = self.recording.stats()
+        if st['error']:
+            level, msg = ERROR, st['error']
+            if st['error'] != self._reported_error:
+                self._reported_error = st['error']
+                self.get_logger().error(st['error'])
+        elif st['dropped_queue_full'] or self.skipped:
+            level = WARN
+            msg = f'{st["dropped_queue_full"]} messages dropped (queue full)' \
+                if st['dropped_queue_full'] else f'{len(self.skipped)} topics not recordable'
+        else:
+            level, msg = OK, st['state']
+        values = dict(st, bag=str(self.bag_path), topics=len(self.subs),
+                      skipped='; '.join(f'{k}: {v}' for k, v in self.skipped.items()))
+        publish_diagnostics(self, self.diag_pub, [
+            diagnostic_status('recorder: bag', str(self.bag_path), level, msg, values)])
+
+    def on_shutdown(self) -> None:
+        meta = self.recording.stop()
+        info = meta['rosbag2_bagfile_information']
+        st = self.recording.stats()
+        self.get_logger().info(
+            f'bag {self.bag_path}: {info["message_count"]} messages in '
+            f'{len(info["relative_file_paths"])} file(s), {st["dropped_queue_full"]} dropped'
+            + (f'; ERROR: {st["error"]}' if st['error'] else ''))
+
+
+main = main_wrapper(Recorder)
+
+if __name__ == '__main__':
+    main()
