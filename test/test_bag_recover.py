@@ -158,8 +158,8 @@ def _writer_with_torn_tail(path, cut: int):
     ts = get_typestore(Stores.ROS2_JAZZY)
     String = ts.types['std_msgs/msg/String']
     for i in range(3000):
-        w.write('/s', 1000 + i, ts.serialize_cdr(String(data=f'{i:06d}' + 'x' * 500),
-                                                'std_msgs/msg/String'))
+        raw = ts.serialize_cdr(String(data=f'{i:06d}' + 'x' * 500), 'std_msgs/msg/String')
+        w.write('/s', 1000 + i, raw)
         if i in (999, 1999):
             w.flush()
     w._file.bio.flush()             # "crash": the pending chunk never reaches the disk

@@ -160,4 +160,3 @@ def test_sqlite3_storage_pause_resume_and_topic_selection(ros, tmp_path):
     assert 'string frame_id' in defs['std_msgs/msg/Header']
     meta = yaml.safe_load((bag / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
     assert meta['storage_identifier'] == 'sqlite3' and meta['message_count'] == len(rows)
-
