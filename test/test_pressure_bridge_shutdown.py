@@ -1,0 +1,59 @@
+"""
+Shutdown vents: the pressure_bridge process against a virtual Due, stopped by a signal.
+
+SIGINT and SIGTERM: the node vents, then closes (exit 0). SIGKILL leaves no chance to
+vent, so the firmware's own watchdog must do it: the emulator's log shows which one did.
+"""
+
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from softshape_ros.config import load_rig_config
+from softshape_ros.hardware.virtual_due import VirtualDue
+
+pytestmark = pytest.mark.ros
+CFG = load_rig_config()
+
+
+@pytest.mark.parametrize('sig, reason', [(signal.SIGINT, 'vent'), (signal.SIGTERM, 'vent'),
+                                         (signal.SIGKILL, 'watchdog')])
+def test_stopping_the_node_vents(sig, reason, ros, tmp_path):
+    from std_msgs.msg import Float64MultiArray
+
+    from softshape_ros.nodes.common import RELIABLE_QOS
+    with VirtualDue(CFG.max_pressures_pa, link=tmp_path / 'ttyDUE', seed=1) as vd:
+        proc = subprocess.Popen(
+            [sys.executable, '-c', 'from softshape_ros.nodes.pressure_bridge import main; main()',
+             '--ros-args', '-p', f'port:={vd.path}', '-p', 'firmware_watchdog_s:=0.3'],
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        try:
+            node = ros.node('shutdown_client')
+            pub = node.create_publisher(Float64MultiArray, CFG.topics.pressure_command,
+                                        RELIABLE_QOS)
+            ros.wait_for(lambda: pub.get_subscription_count() > 0, 60, what='bridge in graph')
+            cmd = [40000.0, 0, 20000, 0, 10000, 5000]
+            deadline = time.monotonic() + 20
+            while time.monotonic() < deadline:      # the link may still be handshaking
+                pub.publish(Float64MultiArray(data=cmd))
+                time.sleep(0.1)
+                log = vd.applied()
+                if log and log[-1].setpoints_pa == tuple(int(x) for x in cmd):
+                    break
+            assert vd.applied()[-1].reason == 'command', vd.applied()
+            t_signal = time.monotonic()
+            proc.send_signal(sig)
+            out, _ = proc.communicate(timeout=30)
+            if sig != signal.SIGKILL:
+                assert proc.returncode == 0, out
+                assert 'shutdown: vented' in out
+            ros.wait_for(lambda: vd.applied()[-1].t > t_signal, 3, what='a vent after the signal')
+            last = vd.applied()[-1]
+            assert last.setpoints_pa == (0,) * 6 and last.reason == reason, vd.applied()[-3:]
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
