@@ -72,7 +72,11 @@ class VirtualDue:
 
     # ------------------------------------------------------------------ lifecycle
     def _new_core(self) -> DueCore:
-        return DueCore(self.fw_limits, on_apply=self._on_apply)
+        core = DueCore(self.fw_limits, on_apply=self._on_apply)
+        # the real firmware boots with micros() = 0 = its first state deadline; ours boots
+        # at a random clock value (to exercise wrap-around), so start the schedule there
+        core.next_state = core.last_byte = self.now_us()
+        return core
 
     def _on_apply(self, setpoints, reason, seq) -> None:
         with self._lock:
@@ -146,8 +150,8 @@ class VirtualDue:
         with self._lock:
             if self._master is None:
                 if reset:
-                    self.core = self._new_core()
                     self._clock_offset = self.rng.randrange(1 << 32)
+                    self.core = self._new_core()
                 self._open_pty()
 
     def inject(self, data: bytes) -> None:
