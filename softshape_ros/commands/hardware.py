@@ -1,4 +1,4 @@
-"""``softshape virtual-due``: an emulated Arduino Due on a pty, for trying the bridge without one."""
+"""``softshape virtual-due``: an emulated Due on a pty, to try the bridge without the rig."""
 
 from __future__ import annotations
 
