@@ -1,0 +1,67 @@
+"""
+Pinhole cameras from ``config/rig.yaml`` (OpenCV optical frame: x right, y down, z forward).
+
+Pixel centres sit at integer coordinates (``u = fx X / Z + cx``), as in OpenCV, so a
+render at the configured resolution and ``preprocess`` of it agree with the projection.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+class PinholeCamera:
+    """A camera's pose and intrinsics; projects points and makes pixel rays."""
+
+    def __init__(self, name, width, height, fx, fy, cx, cy, position, look_at, up, crop=None):
+        self.name = name
+        self.width, self.height = int(width), int(height)
+        self.fx, self.fy, self.cx, self.cy = float(fx), float(fy), float(cx), float(cy)
+        self.position = np.asarray(position, dtype=float)
+        z = np.asarray(look_at, dtype=float) - self.position
+        z /= np.linalg.norm(z)
+        x = np.cross(z, np.asarray(up, dtype=float))
+        if np.linalg.norm(x) < 1e-9:
+            raise ValueError(f'camera {name}: up is parallel to the viewing direction')
+        x /= np.linalg.norm(x)
+        y = np.cross(z, x)
+        self.R = np.column_stack([x, y, z])        # camera axes in world (world <- camera)
+        self.crop = list(crop) if crop is not None else [0, 0, self.width, self.height]
+
+    @classmethod
+    def from_config(cls, name, cam) -> 'PinholeCamera':
+        return cls(name, cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy,
+                   cam.position_m, cam.look_at_m, cam.up, cam.crop_px)
+
+    def project(self, points) -> np.ndarray:
+        """Return (P, 3): pixel u, v and depth z of world points."""
+        pc = (np.atleast_2d(points) - self.position) @ self.R
+        z = pc[:, 2]
+        return np.column_stack([self.fx * pc[:, 0] / z + self.cx,
+                                self.fy * pc[:, 1] / z + self.cy, z])
+
+    def grid(self, region=None, out_size=None):
+        """
+        Return (u0, du, v0, dv, W, H): a pixel grid over ``region`` = [x, y, w, h].
+
+        ``out_size`` = (W, H) samples the region at another resolution, each sample at the
+        centre of the source-pixel area it stands for (what an area resize averages).
+        """
+        x, y, w, h = region if region is not None else [0, 0, self.width, self.height]
+        W, H = out_size if out_size is not None else (w, h)
+        du, dv = w / W, h / H
+        return x + 0.5 * du - 0.5, du, y + 0.5 * dv - 0.5, dv, int(W), int(H)
+
+    def rays(self, grid) -> np.ndarray:
+        """Return unit world ray directions (H, W, 3) for a pixel grid."""
+        u0, du, v0, dv, W, H = grid
+        u = u0 + du * np.arange(W)
+        v = v0 + dv * np.arange(H)
+        xc = (u - self.cx) / self.fx
+        yc = (v - self.cy) / self.fy
+        d = np.empty((H, W, 3))
+        d[..., 0] = xc[None, :]
+        d[..., 1] = yc[:, None]
+        d[..., 2] = 1.0
+        d /= np.linalg.norm(d, axis=-1, keepdims=True)
+        return d @ self.R.T

@@ -1,0 +1,143 @@
+"""
+Frictionless contact between the robot (a tube of its real radius, rounded tip) and rigid objects.
+
+Model (the paper's): each object pushes on the robot with concentrated forces. For every
+local minimum along the backbone of the gap ``gamma(X) = phi(p(X)) - r`` (phi: the object's
+signed distance) the contact point is refined to the true minimiser ``X_c`` by Newton on
+``d phi(p(X)) / dX = 0`` (not snapped to a node), and a smooth penalty force
+``f = k delta softplus(-gamma / delta) grad phi`` acts there along the surface normal.
+The normal passes through the backbone, so the force is applied at ``p(X_c)`` with no
+moment. Its Jacobian ``df/dp = lambda' n n^T + lambda H`` goes into the Newton tangent.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from softshape_ros.sim.statics import LoadTerm
+
+DEFAULT_STIFFNESS_N_M = 2.0e4
+DEFAULT_SMOOTHING_M = 2.0e-5
+_NEAR_M = 2e-3          # refine minima of sampled gaps below this (samples are ~2 mm apart)
+_CUTOFF = 30.0          # gaps beyond 30 smoothing lengths carry no force (< 1e-13 k delta)
+
+
+@dataclass
+class Contact:
+    """One contact: arc length, backbone point, surface point, normal, force, gap."""
+
+    s_m: float
+    backbone_m: np.ndarray
+    point_m: np.ndarray
+    normal: np.ndarray
+    force_n: np.ndarray
+    gap_m: float
+    object_index: int
+
+    def to_dict(self) -> dict:
+        return {'s_m': self.s_m, 'point_m': self.point_m.tolist(),
+                'normal': self.normal.tolist(), 'force_n': self.force_n.tolist(),
+                'gap_m': self.gap_m, 'penetration_m': max(0.0, -self.gap_m),
+                'object': self.object_index}
+
+
+def _softplus(x):
+    return np.where(x > 30, x, np.log1p(np.exp(np.minimum(x, 30))))
+
+
+def _sigmoid(x):
+    return 0.5 * (1.0 + np.tanh(0.5 * x))
+
+
+class ContactModel:
+    """Callable used by :meth:`Statics.assemble`: ``(rod, kin) -> (LoadTerm, info)``."""
+
+    def __init__(self, obstacles, stiffness: float = DEFAULT_STIFFNESS_N_M,
+                 smoothing: float = DEFAULT_SMOOTHING_M):
+        self.obstacles = [o for o in obstacles if o is not None]
+        self.k, self.delta = float(stiffness), float(smoothing)
+
+    def _sample_X(self, rod):
+        mid = rod.offsets[rod.int_seg] + 0.5 * (rod.int_a + rod.int_b)
+        return np.sort(np.concatenate([rod.node_X, mid]))
+
+    def _refine(self, rod, kin, obj, lo, hi, x0):
+        """Minimise phi(p(X)) on [lo, hi] from x0 by safeguarded Newton; return X."""
+        x = x0
+        for _ in range(8):
+            g, _ = rod.at(kin, [x], jac=False)
+            R, p = g[0, :3, :3], g[0, :3, 3]
+            xi = rod.strain(kin.q, [x])[0]
+            tvec = R @ xi[3:]
+            d, n = obj.sdf(p[None])
+            H = obj.hessian(p[None])[0]
+            d1 = float(n[0] @ tvec)
+            d2 = float(tvec @ H @ tvec + n[0] @ (R @ np.cross(xi[:3], xi[3:])))
+            if d2 > 1e-12:
+                step = -d1 / d2
+            else:
+                step = -np.sign(d1) * 0.25 * (hi - lo)
+            xn = min(max(x + step, lo), hi)
+            if abs(xn - x) < 1e-12:
+                x = xn
+                break
+            x = xn
+        return x
+
+    def find(self, rod, kin):
+        """Return contacts as (X, object index) candidates, refined to the gap minima."""
+        Xs = self._sample_X(rod)
+        pts = rod.positions(kin, Xs)
+        seg, _ = rod.locate(Xs)
+        rad = rod.radii[seg]
+        found = []
+        for oi, obj in enumerate(self.obstacles):
+            gap = obj.sdf(pts)[0] - rad
+            n = len(Xs)
+            for i in range(1, n):
+                left = gap[i - 1] if i > 0 else np.inf
+                right = gap[i + 1] if i + 1 < n else np.inf
+                if not (gap[i] <= left and gap[i] < right):
+                    continue
+                if gap[i] > _NEAR_M:
+                    continue
+                lo, hi = Xs[i - 1], Xs[min(i + 1, n - 1)]
+                x = self._refine(rod, kin, obj, lo, hi, Xs[i])
+                found.append((x, oi))
+        return found
+
+    def __call__(self, rod, kin):
+        cands = self.find(rod, kin)
+        info = {'contacts': [], 'max_penetration_m': 0.0}
+        if not cands:
+            return None, info
+        X = np.array([c[0] for c in cands])
+        g, J = rod.at(kin, X)
+        p = g[:, :3, 3]
+        seg, _ = rod.locate(X)
+        rad = rod.radii[seg]
+        f = np.zeros((len(X), 3))
+        dfdp = np.zeros((len(X), 3, 3))
+        keep = []
+        for j, (x, oi) in enumerate(cands):
+            obj = self.obstacles[oi]
+            d, n = obj.sdf(p[j][None])
+            gap = float(d[0]) - rad[j]
+            if gap > _CUTOFF * self.delta:
+                continue
+            z = -gap / self.delta
+            lam = self.k * self.delta * float(_softplus(z))
+            dlam = -self.k * float(_sigmoid(z))              # d lambda / d gap
+            nn = n[0]
+            f[j] = lam * nn
+            dfdp[j] = dlam * np.outer(nn, nn) + lam * obj.hessian(p[j][None])[0]
+            keep.append(j)
+            info['contacts'].append(Contact(float(x), p[j].copy(), p[j] - rad[j] * nn, nn.copy(),
+                                            f[j].copy(), gap, oi))
+            info['max_penetration_m'] = max(info['max_penetration_m'], -gap)
+        if not keep:
+            return None, info
+        k = np.array(keep)
+        return LoadTerm(X[k], g[k], J[k], f[k], np.zeros((len(k), 3)), dfdp[k]), info

@@ -1,0 +1,116 @@
+"""
+SE(3) helpers for the Cosserat rod, batched over a leading axis.
+
+Twists and wrenches are 6-vectors with the angular part first (SoRoSim order):
+``xi = [k, nu]``. Closed forms (Rodrigues, and the Cayley-Hamilton form of the tangent
+operator) keep the kinematics exact for constant strain, which the exact-answer tests need.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+_SMALL = 1e-2
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """Return the 3x3 cross-product matrix(es) of ``v`` (..., 3)."""
+    v = np.asarray(v, dtype=float)
+    out = np.zeros(v.shape[:-1] + (3, 3))
+    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
+    return out
+
+
+def ad(x: np.ndarray) -> np.ndarray:
+    """Return the 6x6 adjoint matrix(es) of twists ``x`` (..., 6): ``ad_x y = [x, y]``."""
+    x = np.asarray(x, dtype=float)
+    w, v = skew(x[..., :3]), skew(x[..., 3:])
+    out = np.zeros(x.shape[:-1] + (6, 6))
+    out[..., :3, :3] = w
+    out[..., 3:, 3:] = w
+    out[..., 3:, :3] = v
+    return out
+
+
+def ad_inv_pose(g: np.ndarray) -> np.ndarray:
+    """Return ``Ad_{g^-1}`` (..., 6, 6) for poses ``g`` (..., 4, 4): maps twists into g's frame."""
+    R = g[..., :3, :3]
+    p = g[..., :3, 3]
+    Rt = np.swapaxes(R, -1, -2)
+    out = np.zeros(g.shape[:-2] + (6, 6))
+    out[..., :3, :3] = Rt
+    out[..., 3:, 3:] = Rt
+    out[..., 3:, :3] = -Rt @ skew(p)
+    return out
+
+
+def exp_se3(x: np.ndarray) -> np.ndarray:
+    """Return the SE(3) exponential(s) (..., 4, 4) of twists ``x`` (..., 6), closed form."""
+    x = np.asarray(x, dtype=float)
+    w, v = x[..., :3], x[..., 3:]
+    th2 = np.sum(w * w, axis=-1)
+    th = np.sqrt(th2)
+    small = th < _SMALL
+    ths = np.where(small, 1.0, th)
+    a = np.where(small, 1 - th2 / 6 + th2 ** 2 / 120, np.sin(ths) / ths)
+    b = np.where(small, 0.5 - th2 / 24 + th2 ** 2 / 720, (1 - np.cos(ths)) / ths ** 2)
+    c = np.where(small, 1 / 6 - th2 / 120 + th2 ** 2 / 5040, (ths - np.sin(ths)) / ths ** 3)
+    W = skew(w)
+    W2 = W @ W
+    eye = np.eye(3)
+    R = eye + a[..., None, None] * W + b[..., None, None] * W2
+    V = eye + b[..., None, None] * W + c[..., None, None] * W2
+    out = np.zeros(x.shape[:-1] + (4, 4))
+    out[..., :3, :3] = R
+    out[..., :3, 3] = np.einsum('...ij,...j->...i', V, v)
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def dexp_se3(x: np.ndarray) -> np.ndarray:
+    """
+    Return the tangent operator T(x) (..., 6, 6) with ``d exp(x) = exp(x) (T(x) dx)^``.
+
+    T(x) = sum_k (-ad_x)^k / (k+1)!, written with Cayley-Hamilton
+    (ad^5 = -2 th^2 ad^3 - th^4 ad) as I + f1 ad + f2 ad^2 + f3 ad^3 + f4 ad^4.
+    """
+    x = np.asarray(x, dtype=float)
+    A = ad(x)
+    A2 = A @ A
+    A3 = A2 @ A
+    A4 = A3 @ A
+    th2 = np.sum(x[..., :3] ** 2, axis=-1)
+    th = np.sqrt(th2)
+    small = th < _SMALL
+    t = np.where(small, 1.0, th)
+    s, c = np.sin(t), np.cos(t)
+    f1 = np.where(small, -(0.5 - th2 ** 2 / 720),
+                  -(4 - 4 * c - t * s) / (2 * t ** 2))
+    f2 = np.where(small, 1 / 6 - th2 ** 2 / 5040,
+                  (4 * t - 5 * s + t * c) / (2 * t ** 3))
+    f3 = np.where(small, -(1 / 24 - th2 / 360 + th2 ** 2 / 13440),
+                  -(2 - 2 * c - t * s) / (2 * t ** 4))
+    f4 = np.where(small, 1 / 120 - th2 / 2520 + th2 ** 2 / 120960,
+                  (2 * t - 3 * s + t * c) / (2 * t ** 5))
+    e = (slice(None),) * (x.ndim - 1) + (None, None)
+    return np.eye(6) + f1[e] * A + f2[e] * A2 + f3[e] * A3 + f4[e] * A4
+
+
+def rpy_matrix(rpy) -> np.ndarray:
+    """Return R = Rz(yaw) Ry(pitch) Rx(roll), the ROS convention for fixed-axis rpy."""
+    r, p, y = (float(v) for v in rpy)
+    cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
+    Rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
+    Ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
+    Rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
+    return Rz @ Ry @ Rx
+
+
+def pose(position, rpy) -> np.ndarray:
+    """Return the 4x4 pose from a position and roll-pitch-yaw."""
+    g = np.eye(4)
+    g[:3, :3] = rpy_matrix(rpy)
+    g[:3, 3] = np.asarray(position, dtype=float)
+    return g

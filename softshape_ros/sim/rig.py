@@ -1,0 +1,157 @@
+"""
+SimRig: the simulated rig. Six chamber pressures + a scene -> equilibrium -> camera images.
+
+Backs the mock hardware node and ``softshape simulate``. Everything comes from the
+``RigConfig`` (robot, chambers, cameras), so the simulated and the physical rig agree on
+geometry, limits and image format. Deterministic for a seed: noise draws come from one
+``numpy`` generator, and solves warm-start from the previous equilibrium of the same scene.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from softshape_ros.config import RigConfig
+from softshape_ros.hardware.pressure import check_command
+from softshape_ros.scene import Scene
+from softshape_ros.sim.camera import PinholeCamera
+from softshape_ros.sim.contact import DEFAULT_SMOOTHING_M, DEFAULT_STIFFNESS_N_M, ContactModel
+from softshape_ros.sim.objects import obstacle_from_scene
+from softshape_ros.sim.render import render_view, to_uint8
+from softshape_ros.sim.rod import Rod, RodSpec
+from softshape_ros.sim.statics import Actuator, SolverError, Statics
+
+SPHERE_SPACING_M = 0.0008
+
+
+@dataclass
+class SimState:
+    """An equilibrium: strain coordinates, backbone, contacts and how the solve went."""
+
+    q: np.ndarray
+    pressures_pa: np.ndarray
+    s_m: np.ndarray                 # (N,) backbone arc lengths
+    backbone_m: np.ndarray          # (N, 3) world points
+    radii_m: np.ndarray             # (N,) tube radius at each point
+    tip_pose: np.ndarray            # (4, 4) world pose of the tip section
+    residual: float
+    iterations: int
+    contacts: list = field(default_factory=list)
+    max_penetration_m: float = 0.0
+
+    def to_dict(self) -> dict:
+        return {'q': self.q.tolist(), 'pressures_pa': self.pressures_pa.tolist(),
+                'tip_position_m': self.tip_pose[:3, 3].tolist(),
+                'tip_rotation': self.tip_pose[:3, :3].tolist(),
+                's_m': self.s_m.tolist(), 'backbone_m': self.backbone_m.tolist(),
+                'residual': self.residual, 'iterations': self.iterations,
+                'contacts': [c.to_dict() for c in self.contacts],
+                'max_penetration_m': self.max_penetration_m}
+
+
+def chamber_actuators(cfg: RigConfig) -> list[Actuator]:
+    """Return the six chambers of the config as simulator actuators (angle 0 = body +y)."""
+    return [Actuator('chamber', c.segment, np.deg2rad(c.angle_deg), c.offset_m, c.area_m2)
+            for c in cfg.chambers]
+
+
+class SimRig:
+    """Pressures (Pa) + scene -> equilibrium -> {'main': RGB, 'side': RGB} images."""
+
+    def __init__(self, cfg: RigConfig, seed: int = 0, image_noise_std: float = 0.0,
+                 pressure_noise_pa: float = 0.0, contact: bool = True,
+                 contact_stiffness: float = DEFAULT_STIFFNESS_N_M,
+                 contact_smoothing: float = DEFAULT_SMOOTHING_M, **rod_overrides):
+        if image_noise_std < 0 or pressure_noise_pa < 0:
+            raise ValueError('noise levels must be >= 0')
+        self.cfg = cfg
+        self.rod = Rod(RodSpec.from_config(cfg.robot, **rod_overrides))
+        self.statics = Statics(self.rod, chamber_actuators(cfg), gravity_on=True)
+        self.cameras = {n: PinholeCamera.from_config(n, c) for n, c in cfg.cameras.items()}
+        self.rng = np.random.default_rng(seed)
+        self.image_noise_std = float(image_noise_std)
+        self.pressure_noise_pa = float(pressure_noise_pa)
+        self.contact_on = contact
+        self.contact_args = (contact_stiffness, contact_smoothing)
+        self.limits = np.asarray(cfg.max_pressures_pa, dtype=float)
+        self.scene = None
+        self.obstacles = []
+        self.contact = None
+        self._q = None
+        sample_n = int(np.ceil(self.rod.length / SPHERE_SPACING_M)) + 1
+        self.sample_s = np.linspace(0.0, self.rod.length, sample_n)
+
+    def set_scene(self, scene: Scene | None) -> None:
+        """Place the scene's object (None or object 'none': the robot alone)."""
+        if scene is not None and not isinstance(scene, Scene):
+            raise TypeError(f'set_scene expects a Scene or None, got {type(scene).__name__}')
+        self.scene = scene
+        obj = obstacle_from_scene(scene)
+        self.obstacles = [obj] if obj is not None else []
+        self.contact = (ContactModel(self.obstacles, *self.contact_args)
+                        if self.obstacles and self.contact_on else None)
+        self._q = None
+
+    def solve(self, pressures_pa) -> SimState:
+        """Return the equilibrium for 6 chamber pressures (Pa; clamped to the limits)."""
+        p = check_command(pressures_pa, self.limits).pressures_pa
+        if self.pressure_noise_pa > 0:
+            p = np.clip(p + self.rng.normal(0.0, self.pressure_noise_pa, p.shape), 0.0,
+                        self.limits)
+        try:
+            q, asm, it = self.statics.solve(p, q0=self._q, contact=self.contact)
+        except SolverError:
+            if self._q is None:
+                raise
+            q, asm, it = self.statics.solve(p, q0=None, contact=self.contact)
+        self._q = q
+        return self._state(q, p, asm, it)
+
+    def _state(self, q, p, asm, it) -> SimState:
+        rod = self.rod
+        kin = asm.kin
+        g, _ = rod.at(kin, self.sample_s, jac=False)
+        seg, _ = rod.locate(self.sample_s)
+        info = asm.extra or {}
+        return SimState(q=q, pressures_pa=np.asarray(p, dtype=float), s_m=self.sample_s.copy(),
+                        backbone_m=g[:, :3, 3], radii_m=rod.radii[seg], tip_pose=kin.g[-1].copy(),
+                        residual=float(np.abs(asm.residual).max()), iterations=int(it),
+                        contacts=list(info.get('contacts', [])),
+                        max_penetration_m=float(info.get('max_penetration_m', 0.0)))
+
+    def _noisy(self, img: np.ndarray) -> np.ndarray:
+        if self.image_noise_std > 0:
+            img = img + self.rng.normal(0.0, self.image_noise_std / 255.0, img.shape)
+        return to_uint8(img)
+
+    def render(self, state: SimState) -> dict:
+        """Return {camera: H x W x 3 uint8 RGB} at each camera's configured resolution."""
+        return {name: self._noisy(render_view(cam, state.backbone_m, state.radii_m,
+                                              self.obstacles))
+                for name, cam in self.cameras.items()}
+
+    def render_inputs(self, state: SimState, size: int = 64, gray: bool = True,
+                      supersample: int = 4, cameras=None) -> dict:
+        """
+        Return {camera: C x size x size uint8}, the network input of each camera.
+
+        Only the crop region is rendered, at ``size * supersample`` pixels (each at the
+        centre of the source-pixel area it stands for), then passed through
+        :func:`~softshape_ros.vision.preprocess.preprocess` (gray, area resize): the same
+        result as preprocessing a full-resolution frame, far faster (test_sim_render).
+        """
+        from softshape_ros.vision.preprocess import preprocess
+        out = {}
+        n = size * supersample
+        for name in cameras or self.cameras:
+            cam = self.cameras[name]
+            img = self._noisy(render_view(cam, state.backbone_m, state.radii_m,
+                                          self.obstacles, cam.grid(cam.crop, (n, n))))
+            out[name] = preprocess(img, [0, 0, n, n], size, gray)
+        return out
+
+    def snap(self, pressures_pa) -> dict:
+        """Solve and render: {camera: RGB uint8} (deterministic for a seed)."""
+        return self.render(self.solve(pressures_pa))

@@ -1,0 +1,332 @@
+"""
+Static equilibrium of the rod: ``B(q) u + Q_ext(q) + Q_grav(q) - K q = 0`` by damped Newton.
+
+Sign convention (one for the whole simulator): a positive tendon tension *pulls* and bends
+its segment towards the tendon; a positive chamber pressure *inflates* and bends the
+segment away from the chamber (and stretches it when stretch is on). Actuator offsets
+``d`` are in the section's body frame ``(0, d_y, d_z)``: angle 0 is the body +y axis.
+
+Residual: point loads (tip, user, contact) enter exactly as ``J(X)^T W`` at their arc
+length; gravity and actuation by Gauss quadrature. Tangent: the constant K, the analytic
+actuation and contact-material terms, plus the geometric (dead-load) stiffness from the
+derivative of the quadrature form of the same loads (internal wrench at each Gauss node
+from everything distal). A solve that does not converge raises :class:`SolverError`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from softshape_ros.sim.lie import skew
+from softshape_ros.sim.rod import Kinematics, Rod
+
+_EX = np.array([1.0, 0.0, 0.0])
+
+
+class SolverError(RuntimeError):
+    """The statics solve did not converge: no shape is returned rather than a wrong one."""
+
+
+@dataclass(frozen=True)
+class Actuator:
+    """A chamber (``kind='chamber'``) or tendon (``kind='tendon'``) of one segment."""
+
+    kind: str
+    segment: int
+    angle_rad: float
+    offset_m: float
+    area_m2: float = 1.0
+
+    @property
+    def d(self) -> np.ndarray:
+        return self.offset_m * np.array([0.0, np.cos(self.angle_rad), np.sin(self.angle_rad)])
+
+
+@dataclass(frozen=True)
+class PointLoad:
+    """A dead (world-fixed) force and moment applied at backbone arc length ``s_m``."""
+
+    s_m: float
+    force_n: tuple = (0.0, 0.0, 0.0)
+    moment_nm: tuple = (0.0, 0.0, 0.0)
+
+
+@dataclass
+class LoadTerm:
+    """Point forces at the backbone for residual and tangent assembly (arrays over loads)."""
+
+    X: np.ndarray        # (P,) arc lengths
+    g: np.ndarray        # (P, 4, 4) poses
+    J: np.ndarray        # (P, 6, n) body Jacobians
+    f: np.ndarray        # (P, 3) world forces
+    m: np.ndarray        # (P, 3) world moments
+    dfdp: np.ndarray | None = None   # (P, 3, 3) force derivative w.r.t. the point position
+
+
+@dataclass
+class Assembly:
+    residual: np.ndarray
+    tangent: np.ndarray
+    scale: float
+    kin: Kinematics
+    extra: dict = field(default_factory=dict)
+
+
+class Statics:
+    """Residual/tangent assembly and the Newton solver for one rod and its actuators."""
+
+    def __init__(self, rod: Rod, actuators: list[Actuator], gravity_on: bool = True):
+        self.rod = rod
+        self.actuators = list(actuators)
+        for a in self.actuators:
+            if a.kind not in ('chamber', 'tendon'):
+                raise ValueError(f'actuator kind must be chamber or tendon, got {a.kind!r}')
+            if not 0 <= a.segment < rod.nseg:
+                raise ValueError(f'actuator segment {a.segment} out of range')
+        self.gravity_on = gravity_on and rod.spec.density > 0 and np.any(rod.gravity != 0)
+        ch = [i for i, a in enumerate(self.actuators) if a.kind == 'chamber']
+        td = [i for i, a in enumerate(self.actuators) if a.kind == 'tendon']
+        self.chamber_idx, self.tendon_idx = np.array(ch, int), np.array(td, int)
+        # Chambers: a constant internal wrench p A [d x e1; e1] on their own segment.
+        self.B_ch = np.zeros((rod.n, len(ch)))
+        for j, i in enumerate(ch):
+            a = self.actuators[i]
+            lam = a.area_m2 * np.concatenate([np.cross(a.d, _EX), _EX])
+            on = rod.gauss_seg == a.segment
+            self.B_ch[:, j] = np.einsum('k,kin,i->n', rod.gauss_w[on], rod.phi_g[on], lam)
+        # Tendons run from the base to the tip of their segment (distal ones through the
+        # proximal segments): active at Gauss node k if its segment <= the tendon's.
+        self.td_d = np.array([self.actuators[i].d for i in td]).reshape(-1, 3)
+        self.td_on = np.array([[rod.gauss_seg[k] <= self.actuators[i].segment for i in td]
+                               for k in range(len(rod.gauss_seg))], dtype=float).reshape(
+                                   len(rod.gauss_seg), len(td))
+        # Gravity: lumped weights at the Gauss nodes (world force).
+        self.grav_f = (rod.spec.density * rod.area[rod.gauss_seg] * rod.gauss_w)[:, None] \
+            * rod.gravity[None, :]
+
+    # -- loads -------------------------------------------------------------------------
+    def tendon_terms(self, kin: Kinematics, tension: np.ndarray):
+        """Return (Q, dQ/dq) of the tendons; slack (negative) tensions pull nothing."""
+        rod = self.rod
+        T = np.maximum(tension, 0.0)
+        xi = kin.xi_gauss                                   # (K, 6)
+        k, nu = xi[:, :3], xi[:, 3:]
+        d = self.td_d                                       # (t, 3)
+        v = nu[:, None, :] + np.cross(k[:, None, :], d[None, :, :])   # (K, t, 3)
+        nv = np.linalg.norm(v, axis=-1)
+        t = v / nv[..., None]
+        Tk = self.td_on * T[None, :]                        # (K, t)
+        lam = -Tk[..., None] * np.concatenate([np.cross(d[None], t), t], axis=-1)
+        Q = np.einsum('k,kin,ki->n', rod.gauss_w, rod.phi_g, lam.sum(axis=1))
+        # d lam / d xi = -T [d^; I] (I - t t^T) / |v| [-d^, I]
+        dh = skew(d)                                        # (t, 3, 3)
+        P = (np.eye(3) - t[..., :, None] * t[..., None, :]) / nv[..., None, None]
+        top = np.concatenate([dh[None].repeat(len(xi), 0), np.broadcast_to(
+            np.eye(3), P.shape)], axis=-2)                  # (K, t, 6, 3)
+        right = np.concatenate([-dh[None].repeat(len(xi), 0), np.broadcast_to(
+            np.eye(3), P.shape)], axis=-1)                  # (K, t, 3, 6)
+        dlam = -(Tk[..., None, None] * (top @ P @ right)).sum(axis=1)   # (K, 6, 6)
+        dQ = np.einsum('k,kin,kij,kjm->nm', rod.gauss_w, rod.phi_g, dlam, rod.phi_g)
+        return Q, dQ
+
+    def gravity_term(self, kin: Kinematics) -> LoadTerm:
+        rod = self.rod
+        idx = rod.gauss_node
+        zero = np.zeros_like(self.grav_f)
+        return LoadTerm(rod.gauss_X, kin.g[idx], kin.J[idx], self.grav_f, zero)
+
+    def point_term(self, kin: Kinematics, loads: list[PointLoad], factor: float) -> LoadTerm:
+        X = np.array([ld.s_m for ld in loads], dtype=float)
+        if np.any((X < 0) | (X > self.rod.length + 1e-12)):
+            raise ValueError(f'point loads must act on 0 <= s <= {self.rod.length} m, got {X}')
+        g, J = self.rod.at(kin, X)
+        f = factor * np.array([ld.force_n for ld in loads], dtype=float).reshape(-1, 3)
+        m = factor * np.array([ld.moment_nm for ld in loads], dtype=float).reshape(-1, 3)
+        return LoadTerm(X, g, J, f, m)
+
+    def _apply(self, term: LoadTerm, R: np.ndarray, Kt: np.ndarray) -> float:
+        """Subtract J^T W from R and the material stiffness from Kt; return a force scale."""
+        Rt = np.swapaxes(term.g[:, :3, :3], 1, 2)
+        W = np.concatenate([np.einsum('pij,pj->pi', Rt, term.m),
+                            np.einsum('pij,pj->pi', Rt, term.f)], axis=1)
+        Q = np.einsum('pin,pi->n', term.J, W)
+        R -= Q
+        if term.dfdp is not None:
+            D = term.g[:, :3, :3] @ term.J[:, 3:, :]          # (P, 3, n) world dp/dq
+            Kt -= np.einsum('pin,pij,pjm->nm', D, term.dfdp, D)
+        return float(np.abs(Q).max(initial=0.0))
+
+    def _dlam(self, g, J, F, M, dM):
+        """Return d(internal wrench)/dq (K, 6, n) at frames g, J for distal dead loads."""
+        Rk, pk = g[:, :3, :3], g[:, :3, 3]
+        Rt = np.swapaxes(Rk, 1, 2)
+        Dk = Rk @ J[:, 3:, :]
+        a = M - np.cross(pk, F)
+        ang = skew(np.einsum('kij,kj->ki', Rt, a)) @ J[:, :3, :] + Rt @ (dM + skew(F) @ Dk)
+        lin = skew(np.einsum('kij,kj->ki', Rt, F)) @ J[:, :3, :]
+        return np.concatenate([ang, lin], axis=1)
+
+    def _geometric(self, kin: Kinematics, terms: list[LoadTerm], point_terms) -> np.ndarray:
+        """
+        Return d/dq of the quadrature form of all dead loads (the geometric stiffness).
+
+        The internal wrench at X from everything distal is smooth between load points, so
+        each point load's own segment is integrated by a Gauss rule on [segment start, X_c]
+        and the segments before it on the regular nodes; gravity (already lumped on the
+        regular nodes) uses those nodes.
+        """
+        rod = self.rod
+        ng, n = len(rod.gauss_X), rod.n
+        Fb = np.zeros((ng + 1, 3))
+        Mb = np.zeros((ng + 1, 3))
+        dMb = np.zeros((ng + 1, 3, n))
+        extra = np.zeros((n, n))
+        xg, wg = np.polynomial.legendre.leggauss(len(rod.gauss_X) // rod.nseg)
+        for t, is_point in zip(terms, point_terms):
+            if len(t.X) == 0:
+                continue
+            p = t.g[:, :3, 3]
+            D = t.g[:, :3, :3] @ t.J[:, 3:, :]
+            fm = t.m + np.cross(p, t.f)
+            dfm = -skew(t.f) @ D
+            if is_point:
+                seg, x = rod.locate(t.X)
+                start = rod.offsets[seg]
+                # Regular nodes of the proximal segments only.
+                b = np.searchsorted(rod.gauss_X, start - 1e-15, side='right')
+                for i in range(len(t.X)):
+                    if x[i] <= 0.0:
+                        continue
+                    Xq = start[i] + x[i] * (xg + 1) / 2
+                    wq = x[i] * wg / 2
+                    gq, Jq = rod.at(kin, Xq)
+                    phq = rod.phi(np.full(len(Xq), seg[i]), Xq - start[i])
+                    dl = self._dlam(gq, Jq, np.broadcast_to(t.f[i], (len(Xq), 3)),
+                                    np.broadcast_to(fm[i], (len(Xq), 3)),
+                                    np.broadcast_to(dfm[i], (len(Xq), 3, n)))
+                    extra += np.einsum('k,kin,kim->nm', wq, phq, dl)
+            else:
+                b = np.searchsorted(rod.gauss_X, t.X + 1e-15, side='right')
+            np.add.at(Fb, b, t.f)
+            np.add.at(Mb, b, fm)
+            np.add.at(dMb, b, dfm)
+        # Node k collects every load in bins > k (strictly distal).
+        F = np.cumsum(Fb[::-1], axis=0)[::-1][1:]
+        M = np.cumsum(Mb[::-1], axis=0)[::-1][1:]
+        dM = np.cumsum(dMb[::-1], axis=0)[::-1][1:]
+        dl = self._dlam(kin.g[rod.gauss_node], kin.J[rod.gauss_node], F, M, dM)
+        return np.einsum('k,kin,kim->nm', rod.gauss_w, rod.phi_g, dl) + extra
+
+    def assemble(self, q, u, loads, factor: float = 1.0, contact=None) -> Assembly:
+        """Residual ``K q - Q`` and its tangent at ``q`` (``factor`` scales u and loads)."""
+        rod = self.rod
+        kin = rod.forward(q)
+        Kq = rod.K @ q
+        R = Kq.copy()
+        Kt = rod.K.copy()
+        scale = float(np.abs(Kq).max())
+        u = np.asarray(u, dtype=float) * factor
+        if len(self.chamber_idx):
+            Qc = self.B_ch @ u[self.chamber_idx]
+            R -= Qc
+            scale = max(scale, float(np.abs(Qc).max()))
+        if len(self.tendon_idx):
+            Qt, dQt = self.tendon_terms(kin, u[self.tendon_idx])
+            R -= Qt
+            Kt -= dQt
+            scale = max(scale, float(np.abs(Qt).max()))
+        terms, is_point = [], []
+        if self.gravity_on:
+            terms.append(self.gravity_term(kin))
+            terms[-1].f = terms[-1].f * factor
+            is_point.append(False)
+        if loads:
+            terms.append(self.point_term(kin, loads, factor))
+            is_point.append(True)
+        extra = {}
+        if contact is not None:
+            cterm, extra = contact(rod, kin)
+            if cterm is not None:
+                terms.append(cterm)
+                is_point.append(True)
+        for t in terms:
+            scale = max(scale, self._apply(t, R, Kt))
+        if terms:
+            Kt -= self._geometric(kin, terms, is_point)
+        return Assembly(R, Kt, scale, kin, extra)
+
+    def solve(self, u, loads=(), q0=None, contact=None, tol: float = 1e-10,
+              max_iter: int = 40, max_depth: int = 8):
+        """
+        Solve for the equilibrium; return (q, assembly, iterations).
+
+        Newton with a backtracking line search; when a step fails the load is applied in
+        smaller increments (bisection of the load factor, up to ``max_depth`` times).
+        """
+        rod = self.rod
+        q = np.zeros(rod.n) if q0 is None else np.array(q0, dtype=float)
+        if q.shape != (rod.n,) or not np.all(np.isfinite(q)):
+            q = np.zeros(rod.n)
+        u = np.asarray(u, dtype=float)
+        if not np.all(np.isfinite(u)):
+            raise ValueError(f'actuation must be finite, got {u}')
+        loads = list(loads)
+        total_iter = 0
+        lam_done, step, depth = 0.0, 1.0, 0
+        last = None
+        while lam_done < 1.0:
+            lam = min(1.0, lam_done + step)
+            ok, q_new, asm, it = self._newton(q, u, loads, lam, contact, tol, max_iter)
+            total_iter += it
+            if ok:
+                q, last, lam_done = q_new, asm, lam
+                if depth > 0:
+                    step *= 2.0
+                    depth -= 1
+            else:
+                if depth >= max_depth:
+                    res = float(np.abs(asm.residual).max()) if asm is not None else float('nan')
+                    raise SolverError(
+                        f'statics did not converge: load factor {lam:.4f} failed after '
+                        f'{total_iter} Newton iterations (residual {res:.3e}, '
+                        f'{depth} load bisections)')
+                step /= 2.0
+                depth += 1
+        return q, last, total_iter
+
+    def _newton(self, q, u, loads, lam, contact, tol, max_iter):
+        rod = self.rod
+        asm = self.assemble(q, u, loads, lam, contact)
+        max_dq = 4.0 * np.pi / rod.lengths.min()
+        for it in range(1, max_iter + 1):
+            r = asm.residual
+            rn = float(np.abs(r).max())
+            if not np.isfinite(rn):
+                return False, q, asm, it
+            if rn <= tol * asm.scale + 1e-15:
+                return True, q, asm, it - 1
+            try:
+                dq = np.linalg.solve(asm.tangent, -r)
+            except np.linalg.LinAlgError:
+                return False, q, asm, it
+            big = float(np.abs(dq).max())
+            if not np.isfinite(big):
+                return False, q, asm, it
+            if big > max_dq:
+                dq *= max_dq / big
+            alpha, accepted = 1.0, False
+            for _ in range(10):
+                trial = self.assemble(q + alpha * dq, u, loads, lam, contact)
+                tn = float(np.abs(trial.residual).max())
+                if np.isfinite(tn) and tn < (1.0 - 1e-4 * alpha) * rn:
+                    accepted = True
+                    break
+                alpha *= 0.5
+            if not accepted:
+                return False, q, asm, it
+            q, asm = q + alpha * dq, trial
+        r = asm.residual
+        ok = float(np.abs(r).max()) <= tol * asm.scale + 1e-15
+        return ok, q, asm, max_iter
