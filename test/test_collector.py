@@ -1,0 +1,200 @@
+"""The collector over real rclpy against a regulator-lag responder: order, records, settling."""
+
+import json
+import threading
+
+import numpy as np
+import pytest
+from rclpy.parameter import Parameter
+
+from softshape_ros.nodes.collector import CommandPlan, SessionError, load_pressure_list
+
+LIMITS = [150000.0] * 6
+
+
+def test_pressure_list_loads_yaml_and_csv_and_rejects_bad_rows(tmp_path):
+    y = tmp_path / 'p.yaml'
+    y.write_text('pressures_pa:\n  - [0, 1000, 2000, 0, 0, 0]\n  - [5e+4, 0, 0, 0, 0, 1]\n')
+    assert load_pressure_list(y, LIMITS).tolist() == [[0, 1000, 2000, 0, 0, 0],
+                                                      [50000, 0, 0, 0, 0, 1]]
+    c = tmp_path / 'p.csv'
+    c.write_text('# six chambers, Pa\n1,2,3,4,5,6\n')
+    assert load_pressure_list(c, LIMITS).tolist() == [[1, 2, 3, 4, 5, 6]]
+    for text, match in [('pressures_pa: [[1, 2, 3]]', 'row 0: .*needs 6'),
+                        ('pressures_pa: [[0, 0, 0, 0, 0, -1]]', 'negative'),
+                        ('pressures_pa: [[0, 0, 0, 0, 0, .nan]]', 'non-finite'),
+                        ('pressures_pa: [[0, 0, 0, 0, 0, 2.0e+5]]', 'exceed their limits'),
+                        ('pressures_pa: []', 'empty'), ('foo: 1', 'pressures_pa')]:
+        y.write_text(text)
+        with pytest.raises(SessionError, match=match):
+            load_pressure_list(y, LIMITS)
+    with pytest.raises(SessionError, match='cannot read'):
+        load_pressure_list(tmp_path / 'none.yaml', LIMITS)
+
+
+def test_random_plan_is_seeded_uniform_within_limits():
+    first = CommandPlan(LIMITS, seed=3, max_fraction=0.5).next()
+    p1 = CommandPlan(LIMITS, seed=3, max_fraction=0.5)
+    p2 = CommandPlan(LIMITS, seed=3, max_fraction=0.5)
+    s1 = np.array([p1.next() for _ in range(400)])
+    s2 = np.array([p2.next() for _ in range(400)])
+    assert np.array_equal(s1, s2) and np.array_equal(first, s1[0])
+    assert s1.min() >= 0 and s1.max() <= 75000.0
+    assert s1.mean() == pytest.approx(37500.0, rel=0.1)       # uniform, not a constant
+    replay = CommandPlan(LIMITS, replay=np.zeros((1, 6)))
+    replay.next()
+    with pytest.raises(SessionError, match='only 1 rows'):
+        replay.next()
+
+
+class Responder:
+    """A bridge stand-in: first-order regulators at 100 Hz, optionally stuck at a fraction."""
+
+    def __init__(self, ros, gain=1.0):
+        from sensor_msgs.msg import JointState
+        from std_msgs.msg import Float64MultiArray, Header, String
+
+        from softshape_ros.config import load_rig_config
+        from softshape_ros.hardware.pressure import FirstOrderRegulator
+        from softshape_ros.nodes.common import LATCHED_QOS, RELIABLE_QOS, stamp_to_ns
+        cfg = load_rig_config()
+        t = cfg.topics
+        self.node = ros.node('responder')
+        self.reg = FirstOrderRegulator(0.01)
+        self.lock = threading.Lock()
+        self.commands, self.triggers, self.samples, self.scenes = [], [], [], []
+        pub = self.node.create_publisher(JointState, t.pressure_measured, RELIABLE_QOS)
+
+        def on_cmd(m):
+            with self.lock:
+                self.commands.append(list(m.data))
+                self.reg.setpoint = np.asarray(m.data) * gain
+
+        def tick():
+            p = self.reg.step(0.01)
+            js = JointState(name=cfg.chamber_names, effort=[float(v) for v in p])
+            js.header.stamp = self.node.get_clock().now().to_msg()
+            pub.publish(js)
+
+        def on(where, value):
+            with self.lock:
+                where.append(value)
+
+        self.node.create_subscription(Float64MultiArray, t.pressure_command, on_cmd,
+                                      RELIABLE_QOS)
+        self.node.create_subscription(
+            Header, t.trigger, lambda m: on(self.triggers, stamp_to_ns(m.stamp)), RELIABLE_QOS)
+        self.node.create_subscription(
+            String, t.sample, lambda m: on(self.samples, json.loads(m.data)), RELIABLE_QOS)
+        self.node.create_subscription(
+            String, t.scene, lambda m: on(self.scenes, json.loads(m.data)), LATCHED_QOS)
+        self.node.create_timer(0.01, tick)
+
+
+def _collector(ros, **params):
+    from softshape_ros.nodes.collector import Collector
+    base = {'rate_hz': 20.0, 'rest_delay_s': 0.05, 'start_delay_s': 0.1,
+            'settle_timeout_s': 1.0}
+    base.update(params)
+    overrides = [Parameter(k, value=v) for k, v in base.items()]
+    return ros.add(Collector(parameter_overrides=overrides))
+
+
+def _session(tmp_path, n_scenes=2, actuations=3):
+    lines = ['scenes:'] + [f'  - {{id: {10 + i}, object: sphere, position_m: [0.02, 0, 0.02], '
+                           f'dims: {{radius_m: 0.005}}, actuations: {actuations}}}'
+                           for i in range(n_scenes)]
+    p = tmp_path / 'session.yaml'
+    p.write_text('\n'.join(lines) + '\n')
+    return p
+
+
+@pytest.mark.ros
+def test_list_mode_session_order_records_and_venting(ros, tmp_path):
+    rows = [[1000.0 * (i + 1)] * 3 + [0.0, 500.0 * i, 0.0] for i in range(6)]
+    plist = tmp_path / 'p.yaml'
+    plist.write_text('pressures_pa: ' + json.dumps(rows) + '\n')
+    resp = Responder(ros)
+    col = _collector(ros, session_file=str(_session(tmp_path)), mode='list',
+                     pressures_file=str(plist))
+    ros.wait_for(col.done.is_set, timeout=30, what='session done')
+    ros.wait_for(lambda: len(resp.samples) == 8 and len(resp.triggers) == 8
+                 and resp.commands[-1] == [0.0] * 6, what='records and the final vent')
+    assert col.state == 'done' and col.samples == 8 and col.unsettled == 0
+    with resp.lock:
+        samples, triggers = list(resp.samples), list(resp.triggers)
+        commands, scenes = list(resp.commands), list(resp.scenes)
+    assert [s['stamp_ns'] for s in samples] == triggers
+    assert [(s['scene_id'], s['kind'], s['index']) for s in samples] == (
+        [(10, 'rest', 0)] + [(10, 'actuation', i) for i in range(3)]
+        + [(11, 'rest', 0)] + [(11, 'actuation', i) for i in range(3)])
+    acts = [s['command_pa'] for s in samples if s['kind'] == 'actuation']
+    assert acts == rows                                  # replayed in order, across scenes
+    assert all(s['command_pa'] == [0.0] * 6 for s in samples if s['kind'] == 'rest')
+    assert all(s['settled'] for s in samples)
+    assert commands[-1] == [0.0] * 6                     # ends venting
+    assert [s['id'] for s in scenes][-1] == 11
+
+
+@pytest.mark.ros
+def test_unsettled_samples_are_marked_and_reported(ros, tmp_path):
+    resp = Responder(ros, gain=0.5)                      # regulators that never reach
+    col = _collector(ros, session_file=str(_session(tmp_path, 1, 2)), settle_timeout_s=0.2,
+                     seed=1)
+    ros.wait_for(col.done.is_set, timeout=30, what='session done')
+    ros.wait_for(lambda: len(resp.samples) == 3, what='records')
+    assert [s['settled'] for s in resp.samples] == [True, False, False]  # rest is at zero
+    assert col.unsettled == 2
+
+
+@pytest.mark.ros
+def test_operator_mode_waits_for_next_scene_service(ros, tmp_path):
+    from std_srvs.srv import Trigger
+    resp = Responder(ros)
+    col = _collector(ros, session_file=str(_session(tmp_path, 1, 1)), wait_for_operator=True)
+    ros.wait_for(lambda: 'operator' in col.state, what='waiting for the operator')
+    client = resp.node.create_client(Trigger, '/collector/next_scene')
+    assert client.wait_for_service(timeout_sec=5)
+    assert resp.triggers == []
+    fut = client.call_async(Trigger.Request())
+    ros.wait_for(fut.done, what='service answer')
+    assert fut.result().success
+    ros.wait_for(col.done.is_set, timeout=30, what='session done')
+    assert [s['kind'] for s in resp.samples] == ['rest', 'actuation']
+
+
+@pytest.mark.ros
+def test_no_session_waits_idle(ros):
+    resp = Responder(ros)
+    col = _collector(ros)
+    assert col.worker is None and col.state.startswith('idle')
+    import time
+    time.sleep(0.3)
+    assert resp.triggers == [] and resp.commands == []
+
+
+@pytest.mark.ros
+def test_sigint_mid_session_vents(ros, tmp_path):
+    """SIGINT shuts the node's context down first; the collector still vents on its way out."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    resp = Responder(ros)
+    proc = subprocess.Popen(
+        [sys.executable, '-c', 'from softshape_ros.nodes.collector import main; main()',
+         '--ros-args', '-p', f'session_file:={_session(tmp_path, 1, 50)}', '-p', 'rate_hz:=5.0',
+         '-p', 'start_delay_s:=0.1', '-p', 'rest_delay_s:=0.05'],
+        env=dict(os.environ), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        ros.wait_for(lambda: any(any(c) for c in resp.commands), timeout=60,
+                     what='an actuation command')
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, out
+    ros.wait_for(lambda: resp.commands[-1] == [0.0] * 6, what='the vent command', timeout=5)
+    assert len(resp.samples) < 50
