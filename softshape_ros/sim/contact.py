@@ -15,7 +15,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.special import spence
 
+from softshape_ros.sim.lie import skew
 from softshape_ros.sim.statics import LoadTerm
 
 DEFAULT_STIFFNESS_N_M = 2.0e4
@@ -47,6 +49,16 @@ def _softplus(x):
     return np.where(x > 30, x, np.log1p(np.exp(np.minimum(x, 30))))
 
 
+def penalty_energy(gap, k, delta):
+    """Return the penalty potential int_gap^inf lambda: k delta^2 (-Li2(-e^z)), z = -gap/delta."""
+    z = -np.asarray(gap, dtype=float) / delta
+    big = z > 30
+    zs = np.where(big, 0.0, z)
+    small = -spence(1.0 + np.exp(zs))
+    large = z ** 2 / 2 + np.pi ** 2 / 6 - np.exp(-np.where(big, z, 30.0))
+    return k * delta ** 2 * np.where(big, large, small)
+
+
 def _sigmoid(x):
     return 0.5 * (1.0 + np.tanh(0.5 * x))
 
@@ -66,7 +78,7 @@ class ContactModel:
     def _refine(self, rod, kin, obj, lo, hi, x0):
         """Minimise phi(p(X)) on [lo, hi] from x0 by safeguarded Newton; return X."""
         x = x0
-        for _ in range(8):
+        for _ in range(30):
             g, _ = rod.at(kin, [x], jac=False)
             R, p = g[0, :3, :3], g[0, :3, 3]
             xi = rod.strain(kin.q, [x])[0]
@@ -80,7 +92,7 @@ class ContactModel:
             else:
                 step = -np.sign(d1) * 0.25 * (hi - lo)
             xn = min(max(x + step, lo), hi)
-            if abs(xn - x) < 1e-12:
+            if abs(xn - x) < 1e-14:
                 x = xn
                 break
             x = xn
@@ -110,7 +122,7 @@ class ContactModel:
 
     def __call__(self, rod, kin):
         cands = self.find(rod, kin)
-        info = {'contacts': [], 'max_penetration_m': 0.0}
+        info = {'contacts': [], 'max_penetration_m': 0.0, 'energy': 0.0}
         if not cands:
             return None, info
         X = np.array([c[0] for c in cands])
@@ -120,6 +132,9 @@ class ContactModel:
         rad = rod.radii[seg]
         f = np.zeros((len(X), 3))
         dfdp = np.zeros((len(X), 3, 3))
+        extra_k = np.zeros((rod.n, rod.n))
+        xi = rod.strain(kin.q, X)
+        phi = rod.phi(*rod.locate(X))
         keep = []
         for j, (x, oi) in enumerate(cands):
             obj = self.obstacles[oi]
@@ -132,12 +147,25 @@ class ContactModel:
             dlam = -self.k * float(_sigmoid(z))              # d lambda / d gap
             nn = n[0]
             f[j] = lam * nn
-            dfdp[j] = dlam * np.outer(nn, nn) + lam * obj.hessian(p[j][None])[0]
+            H = obj.hessian(p[j][None])[0]
+            dfdp[j] = dlam * np.outer(nn, nn) + lam * H
+            if x < rod.length - 1e-12:
+                # The contact point slides with q (gap minimum over X): the min-function's
+                # Hessian adds lambda * gXq^T gXq / gXX to the tangent.
+                Rj = g[j, :3, :3]
+                tv = Rj @ xi[j, 3:]
+                gxx = float(tv @ H @ tv + nn @ (Rj @ np.cross(xi[j, :3], xi[j, 3:])))
+                if gxx > 1e-9:
+                    D = Rj @ J[j, 3:, :]
+                    dt = Rj @ (-skew(xi[j, 3:]) @ J[j, :3, :] + phi[j, 3:, :])
+                    gxq = (H @ tv) @ D + nn @ dt
+                    extra_k += lam * np.outer(gxq, gxq) / gxx
             keep.append(j)
+            info['energy'] += float(penalty_energy(gap, self.k, self.delta))
             info['contacts'].append(Contact(float(x), p[j].copy(), p[j] - rad[j] * nn, nn.copy(),
                                             f[j].copy(), gap, oi))
             info['max_penetration_m'] = max(info['max_penetration_m'], -gap)
         if not keep:
             return None, info
         k = np.array(keep)
-        return LoadTerm(X[k], g[k], J[k], f[k], np.zeros((len(k), 3)), dfdp[k]), info
+        return LoadTerm(X[k], g[k], J[k], f[k], np.zeros((len(k), 3)), dfdp[k], extra_k), info

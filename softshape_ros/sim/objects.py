@@ -5,8 +5,7 @@ Each object lives in its own frame (``Scene.position_m`` / ``rpy_rad`` give its 
 world): cylinder and prism axis +z, centred; ring (torus) in the local x-y plane around +z;
 plane ``z = 0`` with +z out of the solid; sphere at the origin. The oblique prism is a
 parallelepiped whose sections shift along x by ``z tan(skew)``; its distance is a smooth
-maximum of its six face distances (within 0.1 mm of exact; exact inside, where it matters
-for penetration).
+exact distance too (nearest face interior or edge outside, largest face distance inside).
 """
 
 from __future__ import annotations
@@ -15,8 +14,6 @@ import numpy as np
 
 from softshape_ros.scene import Scene
 from softshape_ros.sim.lie import pose
-
-PRISM_SMOOTH_M = 2.5e-5
 
 
 class Obstacle:
@@ -38,11 +35,9 @@ class Obstacle:
     def hessian(self, p: np.ndarray, eps: float = 1e-6) -> np.ndarray:
         """Return the distance Hessian (P, 3, 3) by central differences of the gradient."""
         p = np.atleast_2d(p)
-        H = np.empty((len(p), 3, 3))
-        for i in range(3):
-            e = np.zeros(3)
-            e[i] = eps
-            H[:, :, i] = (self.sdf(p + e)[1] - self.sdf(p - e)[1]) / (2 * eps)
+        steps = np.concatenate([np.eye(3), -np.eye(3)]) * eps          # (6, 3)
+        n = self.sdf((p[:, None, :] + steps[None]).reshape(-1, 3))[1].reshape(len(p), 6, 3)
+        H = np.swapaxes((n[:, :3] - n[:, 3:]) / (2 * eps), 1, 2)
         return 0.5 * (H + np.swapaxes(H, 1, 2))
 
     def raycast(self, origin: np.ndarray, dirs: np.ndarray):
@@ -135,8 +130,8 @@ class Cylinder(Obstacle):
         ts = np.where((disc >= 0) & (a > 1e-300) & (ts > 0) & (np.abs(zs) <= self.hh), ts, np.inf)
         with np.errstate(divide='ignore', invalid='ignore'):
             tc = (np.sign(o[2]) * self.hh - o[2]) / d[:, 2]
-        xc = o[0] + tc * d[:, 0]
-        yc = o[1] + tc * d[:, 1]
+            xc = o[0] + tc * d[:, 0]
+            yc = o[1] + tc * d[:, 1]
         tc = np.where(np.isfinite(tc) & (tc > 0) & (xc ** 2 + yc ** 2 <= self.r ** 2)
                       & (abs(o[2]) > self.hh), tc, np.inf)
         t = np.minimum(ts, tc)
@@ -208,14 +203,53 @@ class Prism(Obstacle):
                                  height_m / 2, height_m / 2])
         self.size = (width_m, depth_m, height_m, skew_rad)
 
+    def _features(self):
+        w, dp, h, sk = self.size
+        ts = np.tan(sk)
+        V = np.array([[sx * w / 2 + sz * h / 2 * ts, sy * dp / 2, sz * h / 2]
+                      for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)])
+        edges = [(i, j) for i in range(8) for j in range(i + 1, 8)
+                 if bin(i ^ j).count('1') == 1]
+        # Faces as (corner, edge1, edge2): vertex index bits are (sx, sy, sz).
+        faces = []
+        for bit in (4, 2, 1):
+            others = [b for b in (4, 2, 1) if b != bit]
+            for side in (0, bit):
+                faces.append((V[side], V[side | others[0]] - V[side],
+                              V[side | others[1]] - V[side]))
+        self._ea = V[[e[0] for e in edges]]                          # (12, 3)
+        self._eab = V[[e[1] for e in edges]] - self._ea
+        self._fa = np.array([f[0] for f in faces])                    # (6, 3)
+        self._fe = np.array([[f[1], f[2]] for f in faces])            # (6, 2, 3)
+        G = np.einsum('fai,fbi->fab', self._fe, self._fe)
+        self._fginv = np.linalg.inv(G)                                # (6, 2, 2)
+
     def _sdf(self, p):
-        e = p @ self.normals.T - self.offsets            # (P, 6) face distances
-        m = e.max(axis=1, keepdims=True)
-        w = np.exp((e - m) / PRISM_SMOOTH_M)
-        sw = w.sum(axis=1, keepdims=True)
-        d = m[:, 0] + PRISM_SMOOTH_M * np.log(sw[:, 0])
-        n = (w / sw) @ self.normals
-        return d, n / np.linalg.norm(n, axis=1, keepdims=True)
+        # Exact distance: inside, the largest face distance; outside, the nearest point
+        # among the face interiors and the 12 edges (C1 outside, so contact is smooth).
+        if not hasattr(self, '_fa'):
+            self._features()
+        e = p @ self.normals.T - self.offsets
+        inside_d = e.max(axis=1)
+        rel = p[:, None, :] - self._ea[None]                           # (P, 12, 3)
+        t = np.clip(np.einsum('pei,ei->pe', rel, self._eab)
+                    / np.einsum('ei,ei->e', self._eab, self._eab), 0.0, 1.0)
+        ce = self._ea[None] + t[..., None] * self._eab[None]
+        de = np.linalg.norm(p[:, None, :] - ce, axis=2)
+        relf = p[:, None, :] - self._fa[None]                          # (P, 6, 3)
+        ab = np.einsum('fab,fbi,pfi->pfa', self._fginv, self._fe, relf)
+        ok = ((ab >= 0) & (ab <= 1)).all(axis=2)
+        cf = self._fa[None] + np.einsum('pfa,fai->pfi', ab, self._fe)
+        df = np.where(ok, np.linalg.norm(p[:, None, :] - cf, axis=2), np.inf)
+        allc = np.concatenate([ce, cf], axis=1)
+        alld = np.concatenate([de, df], axis=1)
+        k = np.argmin(alld, axis=1)
+        closest = allc[np.arange(len(p)), k]
+        outside = inside_d > 0
+        d = np.where(outside, alld[np.arange(len(p)), k], inside_d)
+        n_out = _normalise(p - closest)
+        n_in = self.normals[np.argmax(e, axis=1)]
+        return d, np.where(outside[:, None], n_out, n_in)
 
     def _raycast(self, o, d):
         den = d @ self.normals.T                          # (P, 6)

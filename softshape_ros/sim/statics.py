@@ -63,6 +63,7 @@ class LoadTerm:
     f: np.ndarray        # (P, 3) world forces
     m: np.ndarray        # (P, 3) world moments
     dfdp: np.ndarray | None = None   # (P, 3, 3) force derivative w.r.t. the point position
+    stiffness: np.ndarray | None = None   # (n, n) added to the tangent as is
 
 
 @dataclass
@@ -72,6 +73,8 @@ class Assembly:
     scale: float
     kin: Kinematics
     extra: dict = field(default_factory=dict)
+    energy: float | None = None      # total potential (None: a load is not conservative)
+    energy_scale: float = 0.0
 
 
 class Statics:
@@ -129,7 +132,8 @@ class Statics:
             np.eye(3), P.shape)], axis=-1)                  # (K, t, 3, 6)
         dlam = -(Tk[..., None, None] * (top @ P @ right)).sum(axis=1)   # (K, 6, 6)
         dQ = np.einsum('k,kin,kij,kjm->nm', rod.gauss_w, rod.phi_g, dlam, rod.phi_g)
-        return Q, dQ
+        energy = float(np.einsum('k,kt,kt->', rod.gauss_w, Tk, nv))   # T x tendon length
+        return Q, dQ, energy
 
     def gravity_term(self, kin: Kinematics) -> LoadTerm:
         rod = self.rod
@@ -156,6 +160,8 @@ class Statics:
         if term.dfdp is not None:
             D = term.g[:, :3, :3] @ term.J[:, 3:, :]          # (P, 3, n) world dp/dq
             Kt -= np.einsum('pin,pij,pjm->nm', D, term.dfdp, D)
+        if term.stiffness is not None:
+            Kt += term.stiffness
         return float(np.abs(Q).max(initial=0.0))
 
     def _dlam(self, g, J, F, M, dM):
@@ -227,15 +233,18 @@ class Statics:
         R = Kq.copy()
         Kt = rod.K.copy()
         scale = float(np.abs(Kq).max())
+        energies = [0.5 * float(q @ Kq)]
         u = np.asarray(u, dtype=float) * factor
         if len(self.chamber_idx):
             Qc = self.B_ch @ u[self.chamber_idx]
             R -= Qc
+            energies.append(-float(Qc @ q))
             scale = max(scale, float(np.abs(Qc).max()))
         if len(self.tendon_idx):
-            Qt, dQt = self.tendon_terms(kin, u[self.tendon_idx])
+            Qt, dQt, et = self.tendon_terms(kin, u[self.tendon_idx])
             R -= Qt
             Kt -= dQt
+            energies.append(et)
             scale = max(scale, float(np.abs(Qt).max()))
         terms, is_point = [], []
         if self.gravity_on:
@@ -245,9 +254,14 @@ class Statics:
         if loads:
             terms.append(self.point_term(kin, loads, factor))
             is_point.append(True)
+        conservative = True
+        for t in terms:
+            # Dead forces have potential -f.p; world moments in 3-D do not (path dependent).
+            energies.append(-float(np.einsum('pi,pi->', t.f, t.g[:, :3, 3])))
+            conservative = conservative and not np.any(t.m)
         extra = {}
         if contact is not None:
-            cterm, extra = contact(rod, kin)
+            cterm, extra = contact(rod, kin)      # its potential comes in extra['energy']
             if cterm is not None:
                 terms.append(cterm)
                 is_point.append(True)
@@ -255,7 +269,9 @@ class Statics:
             scale = max(scale, self._apply(t, R, Kt))
         if terms:
             Kt -= self._geometric(kin, terms, is_point)
-        return Assembly(R, Kt, scale, kin, extra)
+        energies.append(float(extra.get('energy', 0.0)))
+        energy = float(sum(energies)) if conservative else None
+        return Assembly(R, Kt, scale, kin, extra, energy, float(sum(abs(e) for e in energies)))
 
     def solve(self, u, loads=(), q0=None, contact=None, tol: float = 1e-10,
               max_iter: int = 40, max_depth: int = 8):
@@ -297,9 +313,24 @@ class Statics:
         return q, last, total_iter
 
     def _newton(self, q, u, loads, lam, contact, tol, max_iter):
+        """
+        Damped Newton on the total potential when all loads are conservative.
+
+        The step solves (H + mu diag K) dq = -R with mu > 0 only where the tangent H is not
+        positive definite, and the line search asks the energy to drop (Armijo): so the
+        solver walks to stable equilibria and never settles on a saddle (e.g. the tip
+        balanced on a cylinder it would slide off). Without an energy (world moments) the
+        merit is the K-weighted residual norm.
+        """
         rod = self.rod
+        kd = np.diag(rod.K)
         asm = self.assemble(q, u, loads, lam, contact)
         max_dq = 4.0 * np.pi / rod.lengths.min()
+        mu = 0.0
+
+        def wnorm(a):
+            return float(np.sqrt(np.sum(a.residual ** 2 / kd)))
+
         for it in range(1, max_iter + 1):
             r = asm.residual
             rn = float(np.abs(r).max())
@@ -307,22 +338,40 @@ class Statics:
                 return False, q, asm, it
             if rn <= tol * asm.scale + 1e-15:
                 return True, q, asm, it - 1
-            try:
-                dq = np.linalg.solve(asm.tangent, -r)
-            except np.linalg.LinAlgError:
+            H = 0.5 * (asm.tangent + asm.tangent.T)
+            mu = 0.0 if mu < 1e-8 else mu * 0.1
+            for _ in range(30):
+                try:
+                    L = np.linalg.cholesky(H + mu * np.diag(kd))
+                    break
+                except np.linalg.LinAlgError:
+                    mu = max(mu * 10.0, 1e-4)
+            else:
                 return False, q, asm, it
+            dq = -np.linalg.solve(L.T, np.linalg.solve(L, r))
             big = float(np.abs(dq).max())
             if not np.isfinite(big):
                 return False, q, asm, it
             if big > max_dq:
                 dq *= max_dq / big
+            slope = float(r @ dq)
+            w0 = wnorm(asm)
             alpha, accepted = 1.0, False
-            for _ in range(10):
+            for _ in range(12):
                 trial = self.assemble(q + alpha * dq, u, loads, lam, contact)
                 tn = float(np.abs(trial.residual).max())
-                if np.isfinite(tn) and tn < (1.0 - 1e-4 * alpha) * rn:
-                    accepted = True
-                    break
+                if np.isfinite(tn):
+                    if asm.energy is not None and trial.energy is not None:
+                        eps = 1e-13 * max(asm.energy_scale, trial.energy_scale)
+                        ok = trial.energy <= asm.energy + 1e-4 * alpha * slope + eps
+                        # Near the solution energy differences drown in round-off: a
+                        # positive-definite Newton step that shrinks the residual is fine.
+                        ok = ok or (mu == 0.0 and alpha == 1.0 and wnorm(trial) < 0.5 * w0)
+                    else:
+                        ok = wnorm(trial) < (1.0 - 1e-4 * alpha) * w0
+                    if ok:
+                        accepted = True
+                        break
                 alpha *= 0.5
             if not accepted:
                 return False, q, asm, it
