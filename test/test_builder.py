@@ -1,11 +1,11 @@
 """
 build-dataset on a session recorded live: plain rclpy publishers play the rig's contract.
 
-Two scenes, each a rest trigger and five actuations; four actuations are spoiled on
-purpose (side frame never sent, capture skew too large, unsettled, no measured pressure).
-The recorder node records over real DDS; the builder must keep exactly the six good
-samples, pair each with the images and pressures published for its stamp, and count
-the four drops by reason.
+Two scenes, each a rest trigger and five actuations; five actuations are spoiled on
+purpose (side frame never sent, capture skew too large, unsettled, a torn main frame, no
+measured pressure) and one /rig/sample message is not JSON. The recorder node records
+over real DDS; the builder must keep exactly the five good samples, pair each with the
+images and pressures published for its stamp, and count every drop by reason.
 """
 
 import json
@@ -73,7 +73,7 @@ class RigPlayer:
         self.sent += 1
 
     def shoot(self, stamp, scene_id, kind, index, settled=True, skip_cam=None, skew_ns=0,
-              pressure=True):
+              pressure=True, torn_cam=None):
         Image, JointState, TimeReference, Header, String = self.msgs
         cmd = [float(10000 * (index + 1) + k) for k in range(6)]
         self.sample.publish(String(data=json.dumps({
@@ -94,8 +94,9 @@ class RigPlayer:
             if cam == skip_cam:
                 continue
             img = frame(stamp, cam)
+            data = img.tobytes()[: -W * 3 if cam == torn_cam else None]
             m = Image(height=H, width=W, encoding='rgb8', is_bigendian=0, step=W * 3,
-                      data=img.tobytes())
+                      data=data)
             m.header.stamp = stamp_msg(stamp)
             m.header.frame_id = self.cfg.cameras[cam].frame_id
             self.image[cam].publish(m)
@@ -126,7 +127,9 @@ def session(ros, cfg, tmp_path):
                  what='recorder to subscribe to the rig topics')
     time.sleep(0.5)      # let the reliable matches complete both ways
     spoil = {2: dict(skip_cam='side'), 4: dict(skew_ns=50_000_000),
-             7: dict(settled=False), 9: dict(pressure=False)}
+             7: dict(settled=False), 8: dict(torn_cam='main'), 9: dict(pressure=False)}
+    player.sample.publish(player.msgs[4](data='{"stamp_ns": oops'))    # malformed JSON
+    player.sent += 1
     stamps = {}
     k = 0
     for scene_id in (0, 1):
@@ -153,13 +156,15 @@ def test_build_dataset_pairs_and_drops_exactly(session, cfg, tmp_path):
     bag, player, stamps, spoil = session
     ds, report = build_dataset([bag], tmp_path / 'ds', cfg, progress=False)
     assert report['dropped'] == {'missing_camera_side': 1, 'capture_skew': 1, 'unsettled': 1,
-                                 'no_pressure': 1}
+                                 'bad_image_main': 1, 'no_pressure': 1,
+                                 'malformed_sample_json': 1}
     good = [v for n, v in sorted(stamps.items()) if n not in spoil]
-    assert len(ds) == len(good) == 6
+    assert len(ds) == len(good) == 5
     ds = load_dataset(tmp_path / 'ds')
-    assert ds.initial.shape == (6, 2, 1, 64, 64) and ds.target.dtype == np.uint8
+    assert ds.initial.shape == (5, 2, 1, 64, 64) and ds.target.dtype == np.uint8
     assert ds.meta['stamps_ns'] == [g[0] for g in good]
-    assert ds.meta['kept'] == 6 and ds.meta['triggers'] == 12
+    assert ds.meta['kept'] == 5 and ds.meta['triggers'] == 12
+    assert ds.meta['dropped'] == report['dropped']
     np.testing.assert_array_equal(ds.max_pressure_pa, cfg.max_pressures_pa)
 
     def expect(stamp, cam):
@@ -175,6 +180,11 @@ def test_build_dataset_pairs_and_drops_exactly(session, cfg, tmp_path):
             np.testing.assert_array_equal(ds.initial[i, v], expect(rest, cam))
     # Different samples really differ (pairing is not trivially satisfied).
     assert not np.array_equal(ds.target[0], ds.target[1])
+    # Two sessions with the same scene ids keep their scenes apart.
+    both, rep2 = build_dataset([bag, bag], tmp_path / 'two', cfg, progress=False)
+    assert len(both) == 10 and rep2['triggers'] == 24
+    assert list(both.scene) == list(ds.scene) + [s + 2 for s in ds.scene]
+    np.testing.assert_array_equal(both.target[5:], ds.target)
 
 
 def test_build_dataset_cli_and_rgb(session, tmp_path):
@@ -184,9 +194,9 @@ def test_build_dataset_cli_and_rgb(session, tmp_path):
                            '--out', str(out), '--rgb', '--quiet'],
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
-    assert '6 samples' in proc.stdout and 'unsettled=1' in proc.stdout
+    assert '5 samples' in proc.stdout and 'unsettled=1' in proc.stdout
     ds = load_dataset(out)
-    assert ds.initial.shape == (6, 2, 3, 64, 64)
+    assert ds.initial.shape == (5, 2, 3, 64, 64)
     again = subprocess.run([sys.executable, '-m', 'softshape_ros.cli', 'build-dataset',
                             str(bag), '--out', str(out), '--quiet'],
                            capture_output=True, text=True, timeout=120)

@@ -47,6 +47,51 @@ def message_class(msgtype: str):
     return getattr(importlib.import_module(f'{pkg}.{kind}'), name)
 
 
+_PRIMITIVES = {'boolean': 'bool', 'octet': 'byte', 'float': 'float32', 'double': 'float64'}
+
+
+def _msg_field_type(t: str) -> str:
+    """Turn a rosidl Python field type ('sequence<uint8, 4>', 'double') into .msg syntax."""
+    m = re.fullmatch(r'sequence<(.+?)(?:, (\d+))?>', t)
+    if m:
+        return _msg_field_type(m.group(1)) + (f'[<={m.group(2)}]' if m.group(2) else '[]')
+    m = re.fullmatch(r'(.+)\[(\d+)\]', t)
+    if m:
+        return f'{_msg_field_type(m.group(1))}[{m.group(2)}]'
+    return _PRIMITIVES.get(t, t)
+
+
+def spec_from_class(topic: str, msgtype: str, cls, qos=()) -> TopicSpec:
+    """
+    Build the stored definition of a type the Jazzy typestore lacks from its Python class.
+
+    rosidl classes list their fields (``get_fields_and_field_types``); nested types are
+    added the same way, so any decoder can read the recorded messages.
+    """
+    from rosbags.typesys import get_types_from_msg
+    from softshape_ros.data.bag_writer import jazzy_typestore
+    base = jazzy_typestore()
+    types, todo = {}, [(msgtype, cls)]
+    while todo:
+        name, c = todo.pop()
+        if name in types or name in base.fielddefs:
+            continue
+        lines = []
+        for field, ftype in c.get_fields_and_field_types().items():
+            mtype = _msg_field_type(ftype)
+            inner = re.sub(r'\[.*\]$', '', mtype)
+            if '/' in inner:
+                pkg, typ = inner.split('/')[0], inner.split('/')[-1]
+                full = f'{pkg}/msg/{typ}'
+                todo.append((full, message_class(full)))
+            lines.append(f'{mtype} {field}')
+        types.update(get_types_from_msg('\n'.join(lines), name))
+    from rosbags.typesys import Stores, get_typestore
+    ts = get_typestore(Stores.ROS2_JAZZY)
+    ts.register(types)
+    return TopicSpec.from_typestore(topic, msgtype, qos, typestore=ts)
+
+
 def _rb_time(d) -> QosTime:
     return QosTime(int(d.nanoseconds // 1_000_000_000), int(d.nanoseconds % 1_000_000_000))
 
@@ -155,11 +200,14 @@ class Recorder(Node):
             offered = [i.qos_profile for i in self.get_publishers_info_by_topic(topic)]
             if not offered:
                 continue                    # only subscribers so far: wait for a publisher
+            qos = [to_rosbags_qos(q) for q in offered]
             try:
-                spec = TopicSpec.from_typestore(topic, msgtype,
-                                                [to_rosbags_qos(q) for q in offered])
                 cls = message_class(msgtype)
-            except (BagError, ImportError, AttributeError, ValueError) as exc:
+                try:
+                    spec = TopicSpec.from_typestore(topic, msgtype, qos)
+                except BagError:
+                    spec = spec_from_class(topic, msgtype, cls, qos)
+            except Exception as exc:    # unknown package, odd IDL: skip it, say why
                 self._skip(topic, f'cannot record {msgtype}: {exc}')
                 continue
             self.recording.add_topic(spec)

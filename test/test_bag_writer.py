@@ -1,0 +1,112 @@
+"""BagWriter without ROS in the loop: splitting, compression, stored definitions, bad input."""
+
+import time
+
+import pytest
+import yaml
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
+from rosbags.rosbag2 import Reader
+from rosbags.typesys import Stores, get_typestore
+
+from softshape_ros.data.bag_tools import bag_info, format_info
+from softshape_ros.data.bag_writer import BagError, BagWriter, TopicSpec
+
+TS = get_typestore(Stores.ROS2_JAZZY)
+
+
+def header(i):
+    H, T = TS.types['std_msgs/msg/Header'], TS.types['builtin_interfaces/msg/Time']
+    return TS.serialize_cdr(H(stamp=T(sec=i, nanosec=7), frame_id=f'{i:05d}' + 'p' * 1000),
+                            'std_msgs/msg/Header')
+
+
+def mcap_messages(bag):
+    meta = yaml.safe_load((bag / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
+    out = []
+    for name in meta['relative_file_paths']:
+        with open(bag / name, 'rb') as f:
+            out += [(c.topic, m.log_time, d) for _, c, m, d in
+                    make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages()]
+    return meta, out
+
+
+@pytest.mark.parametrize('compression', ['none', 'zstd'])
+def test_split_by_size_every_file_readable(tmp_path, compression):
+    bag = tmp_path / 'split'
+    w = BagWriter(bag, max_bytes=200_000, compression=compression)
+    w.add_topic(TopicSpec.from_typestore('/h', 'std_msgs/msg/Header'))
+    for i in range(600):
+        assert w.write('/h', 10**9 + i, header(i))
+    meta = w.close()['rosbag2_bagfile_information']
+    files = meta['relative_file_paths']
+    assert len(files) >= 3 if compression == 'none' else len(files) >= 1
+    assert [f['message_count'] for f in meta['files']] and meta['message_count'] == 600
+    _, msgs = mcap_messages(bag)
+    assert [int(d.frame_id[:5]) for _, _, d in msgs] == list(range(600))
+    assert [t for _, t, _ in msgs] == [10**9 + i for i in range(600)]
+    with Reader(bag) as r:
+        assert sum(1 for _ in r.messages()) == 600
+    text = format_info(bag_info(bag))
+    assert 'Count: 600' in text and 'std_msgs/msg/Header' in text
+
+
+def test_split_by_duration_and_on_request(tmp_path):
+    bag = tmp_path / 'dur'
+    w = BagWriter(bag, max_duration_s=0.2)
+    w.add_topic(TopicSpec.from_typestore('/h', 'std_msgs/msg/Header'))
+    w.write('/h', 1, header(1))
+    time.sleep(0.25)
+    w.write('/h', 2, header(2))          # this write passes the duration: new file after it
+    w.write('/h', 3, header(3))
+    assert w.split()
+    w.write('/h', 4, header(4))
+    meta = w.close()['rosbag2_bagfile_information']
+    assert [f['message_count'] for f in meta['files']] == [2, 1, 1]
+    assert [int(d.frame_id[:5]) for _, _, d in mcap_messages(bag)[1]] == [1, 2, 3, 4]
+
+
+def test_type_missing_from_typestore_is_stored_from_its_class(tmp_path):
+    from geometry_msgs.msg import PoseStamped
+    from nav_msgs.msg import Goals
+    from rclpy.serialization import serialize_message
+
+    from softshape_ros.nodes.recorder import message_class, spec_from_class
+    assert 'nav_msgs/msg/Goals' not in TS.fielddefs
+    spec = spec_from_class('/goals', 'nav_msgs/msg/Goals', message_class('nav_msgs/msg/Goals'))
+    msg = Goals()
+    msg.header.frame_id = 'map'
+    for k in range(3):
+        p = PoseStamped()
+        p.pose.position.x = float(k)
+        p.header.frame_id = f'g{k}'
+        msg.goals.append(p)
+    w = BagWriter(tmp_path / 'goals')
+    w.add_topic(spec)
+    w.write('/goals', 5, serialize_message(msg))
+    w.close()
+    _, msgs = mcap_messages(tmp_path / 'goals')
+    d = msgs[0][2]
+    assert d.header.frame_id == 'map' and [g.pose.position.x for g in d.goals] == [0, 1, 2]
+    assert [g.header.frame_id for g in d.goals] == ['g0', 'g1', 'g2']
+
+
+def test_bad_input_is_refused_clearly(tmp_path):
+    with pytest.raises(BagError, match='storage must be'):
+        BagWriter(tmp_path / 'x', storage='rosbag1')
+    with pytest.raises(BagError, match='zstd compression needs the mcap'):
+        BagWriter(tmp_path / 'y', storage='sqlite3', compression='zstd')
+    w = BagWriter(tmp_path / 'z')
+    with pytest.raises(BagError, match='not registered'):
+        w.write('/nope', 0, b'')
+    with pytest.raises(BagError, match='no message definition'):
+        TopicSpec.from_typestore('/t', 'my_pkg/msg/Nothing')
+    w.add_topic(TopicSpec.from_typestore('/h', 'std_msgs/msg/Header'))
+    with pytest.raises(BagError, match='already recorded as'):
+        w.add_topic(TopicSpec.from_typestore('/h', 'std_msgs/msg/String'))
+    w.close()
+    with pytest.raises(BagError, match='exists already'):
+        BagWriter(tmp_path / 'z')
+    assert not w.write('/h', 1, header(1))       # closed: refused, not crashed
+    with pytest.raises(BagError, match='no such bag'):
+        bag_info(tmp_path / 'missing')
