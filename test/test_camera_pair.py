@@ -40,8 +40,8 @@ def test_two_camera_processes_answer_100_triggers_with_matching_stamps(ros, tmp_
     from std_msgs.msg import Header
 
     from softshape_ros.config import load_rig_config
-    from softshape_ros.nodes.common import (RELIABLE_QOS, SENSOR_QOS, image_to_numpy,
-                                            ns_to_stamp, stamp_to_ns)
+    from softshape_ros.nodes.common import (RELIABLE_QOS, image_to_numpy, ns_to_stamp,
+                                            stamp_to_ns)
     from softshape_ros.vision.patterns import decode_index, write_video
 
     cfg = load_rig_config()
@@ -71,7 +71,7 @@ def test_two_camera_processes_answer_100_triggers_with_matching_stamps(ros, tmp_
 
     for c in ('main', 'side'):
         probe.create_subscription(Image, t.camera('camera_image', c),
-                                  lambda m, c=c: on_image(c, m), SENSOR_QOS)
+                                  lambda m, c=c: on_image(c, m), RELIABLE_QOS)
         probe.create_subscription(TimeReference, t.camera('capture_time', c),
                                   lambda m, c=c: on_time(c, m), RELIABLE_QOS)
     probe.create_subscription(DiagnosticArray, t.diagnostics, on_diag, RELIABLE_QOS)

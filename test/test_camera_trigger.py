@@ -24,11 +24,14 @@ class Probe:
         self.node = ros.node(f'probe_{camera}_{random.randrange(10**6)}')
         self.lock = threading.Lock()
         self.images, self.infos, self.times, self.diags = [], [], [], []
+        self.best_effort = []
         self.trigger_pub = self.node.create_publisher(Header, t.trigger, RELIABLE_QOS)
         self.node.create_subscription(Image, t.camera('camera_image', camera),
-                                      lambda m: self._add(self.images, m), SENSOR_QOS)
+                                      lambda m: self._add(self.images, m), RELIABLE_QOS)
+        self.node.create_subscription(Image, t.camera('camera_image', camera),  # a viewer
+                                      lambda m: self._add(self.best_effort, m), SENSOR_QOS)
         self.node.create_subscription(CameraInfo, t.camera('camera_info', camera),
-                                      lambda m: self._add(self.infos, m), SENSOR_QOS)
+                                      lambda m: self._add(self.infos, m), RELIABLE_QOS)
         self.node.create_subscription(TimeReference, t.camera('capture_time', camera),
                                       lambda m: self._add(self.times, m), RELIABLE_QOS)
         self.node.create_subscription(
@@ -121,6 +124,7 @@ def test_trigger_gets_the_frame_current_at_the_trigger(ros, tmp_path, kind):
     ros.wait_for(lambda: values().get('frames') == '10', what='diagnostics counting 10 frames')
     assert probe.last_level() == 0
     assert "'n': 10" in values()['trigger_to_capture_ms']
+    assert probe.best_effort                   # sensor-data (best effort) viewers match too
 
 
 def test_vanished_folder_gives_error_then_recovers(ros, tmp_path):

@@ -15,6 +15,7 @@ import time
 
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image, TimeReference
 from std_msgs.msg import Header
 
@@ -26,6 +27,14 @@ from softshape_ros.vision.camera_info import (Calibration, CalibrationError,
                                               default_calibration_path, load_calibration)
 from softshape_ros.vision.capture import CaptureError, open_source
 from softshape_ros.vision.sync import RollingStats, SkewTracker
+
+
+#: Images and CameraInfo: keep-last 5 like the sensor-data profile, but *offered* reliable.
+#: Best-effort subscribers (viewers, SENSOR_QOS) still match; reliable ones (the recorder
+#: adapts to its publishers) get every frame: a 640x480 best-effort frame is lost whenever
+#: one of its ~15 UDP fragments is (benchmarks/bench_cameras.py measures both).
+IMAGE_QOS = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE,
+                       history=HistoryPolicy.KEEP_LAST)
 
 
 def camera_info_msg(cal: Calibration, stamp, frame_id: str) -> CameraInfo:
@@ -86,10 +95,11 @@ class CameraTrigger(Node):
             raise ValueError(f'camera_info_url: {exc}') from None
 
         topics = self.cfg.topics
+        qos = IMAGE_QOS if par('reliable_images', True).value else SENSOR_QOS
         self.pub_image = self.create_publisher(
-            Image, topics.camera('camera_image', self.camera), SENSOR_QOS)
+            Image, topics.camera('camera_image', self.camera), qos)
         self.pub_info = self.create_publisher(
-            CameraInfo, topics.camera('camera_info', self.camera), SENSOR_QOS)
+            CameraInfo, topics.camera('camera_info', self.camera), qos)
         self.pub_time = self.create_publisher(
             TimeReference, topics.camera('capture_time', self.camera), RELIABLE_QOS)
         self.pub_diag = self.create_publisher(DiagnosticArray, topics.diagnostics, RELIABLE_QOS)
