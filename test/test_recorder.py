@@ -160,3 +160,22 @@ def test_sqlite3_storage_pause_resume_and_topic_selection(ros, tmp_path):
     assert 'string frame_id' in defs['std_msgs/msg/Header']
     meta = yaml.safe_load((bag / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
     assert meta['storage_identifier'] == 'sqlite3' and meta['message_count'] == len(rows)
+
+
+def test_qos_rematched_when_a_best_effort_publisher_joins(ros, tmp_path):
+    from std_msgs.msg import String
+    pub = ros.node('qos_pub')
+    reliable = pub.create_publisher(String, '/qos/mixed', RELIABLE)
+    rec = make_recorder(ros, output=str(tmp_path / 'q'), rig_topics=False, regex='^/qos/')
+    ros.wait_for(lambda: '/qos/mixed' in rec.subs, timeout=20, what='subscription')
+    assert rec.sub_qos['/qos/mixed'][1].reliability == ReliabilityPolicy.RELIABLE
+    late = pub.create_publisher(String, '/qos/mixed', SENSOR_QOS)
+    ros.wait_for(lambda: rec.sub_qos['/qos/mixed'][1].reliability
+                 == ReliabilityPolicy.BEST_EFFORT, timeout=20, what='QoS re-match')
+    ros.wait_for(lambda: late.get_subscription_count() > 0
+                 and reliable.get_subscription_count() > 0, timeout=10, what='both matched')
+    time.sleep(0.3)
+    reliable.publish(String(data='from reliable'))
+    late.publish(String(data='from best effort'))
+    ros.wait_for(lambda: rec.recording.received['/qos/mixed'] >= 2, timeout=10,
+                 what='both publishers recorded')

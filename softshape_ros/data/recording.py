@@ -111,6 +111,9 @@ class Recording:
             self._stop = True
             self._cv.notify()
         self._thread.join(timeout)
+        if self._thread.is_alive():     # never close the bag under the writer's feet
+            self.error = self.error or f'writer thread still busy after {timeout:.0f} s'
+            return self.writer.metadata()
         return self.writer.close()
 
     # -- the writer thread --------------------------------------------------------------

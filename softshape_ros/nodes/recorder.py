@@ -170,6 +170,7 @@ class Recorder(Node):
         self.recording = Recording(writer, queue_messages=qmsgs, queue_bytes=int(qmb * 2**20),
                                    flush_interval_s=flush_s)
         self.subs = {}
+        self.sub_qos = {}            # topic -> (message class, QoS profile in use)
         self.skipped = {}            # topic -> why it is not recorded
         self.diag_pub = self.create_publisher(DiagnosticArray, cfg.topics.diagnostics, 10)
         self.create_service(Trigger, '~/pause', self._pause)
@@ -191,7 +192,10 @@ class Recorder(Node):
 
     def _discover(self) -> None:
         for topic, types in self.get_topic_names_and_types():
-            if topic in self.subs or topic in self.skipped or not self.matches(topic):
+            if topic in self.subs:
+                self._readapt(topic)
+                continue
+            if topic in self.skipped or not self.matches(topic):
                 continue
             if len(types) != 1:
                 self._skip(topic, f'{len(types)} types on one topic: {types}')
@@ -211,9 +215,34 @@ class Recorder(Node):
                 self._skip(topic, f'cannot record {msgtype}: {exc}')
                 continue
             self.recording.add_topic(spec)
-            self.subs[topic] = self.create_subscription(
-                cls, topic, self._callback(topic), adapted_qos(offered, self.depth), raw=True)
+            self._subscribe(topic, cls, adapted_qos(offered, self.depth))
             self.get_logger().info(f'recording {topic} [{msgtype}]')
+
+    def _subscribe(self, topic, cls, qos) -> None:
+        self.subs[topic] = self.create_subscription(cls, topic, self._callback(topic), qos,
+                                                    raw=True)
+        self.sub_qos[topic] = (cls, qos)
+
+    def _readapt(self, topic: str) -> None:
+        """Weaken a subscription's QoS when a less strict publisher joins (never miss one)."""
+        cls, qos = self.sub_qos[topic]
+        offered = [i.qos_profile for i in self.get_publishers_info_by_topic(topic)
+                   if i.node_name != self.get_name()]
+        if not offered:
+            return
+        new = adapted_qos(offered, self.depth)
+        if (new.reliability, new.durability) == (qos.reliability, qos.durability):
+            return
+        stronger = (new.reliability == ReliabilityPolicy.RELIABLE
+                    and qos.reliability != ReliabilityPolicy.RELIABLE) or \
+            (new.durability == DurabilityPolicy.TRANSIENT_LOCAL
+             and qos.durability != DurabilityPolicy.TRANSIENT_LOCAL)
+        if stronger:
+            return      # only ever weaken (a re-latched message would be recorded twice)
+        self.destroy_subscription(self.subs.pop(topic))
+        self._subscribe(topic, cls, new)
+        self.get_logger().info(f'{topic}: QoS re-matched to its publishers '
+                               f'({new.reliability.name}, {new.durability.name})')
 
     def _skip(self, topic: str, why: str) -> None:
         self.skipped[topic] = why
