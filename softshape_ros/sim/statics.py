@@ -150,13 +150,15 @@ class Statics:
         m = factor * np.array([ld.moment_nm for ld in loads], dtype=float).reshape(-1, 3)
         return LoadTerm(X, g, J, f, m)
 
-    def _apply(self, term: LoadTerm, R: np.ndarray, Kt: np.ndarray) -> float:
-        """Subtract J^T W from R and the material stiffness from Kt; return a force scale."""
-        Rt = np.swapaxes(term.g[:, :3, :3], 1, 2)
-        W = np.concatenate([np.einsum('pij,pj->pi', Rt, term.m),
-                            np.einsum('pij,pj->pi', Rt, term.f)], axis=1)
-        Q = np.einsum('pin,pi->n', term.J, W)
-        R -= Q
+    def _apply(self, term: LoadTerm, R: np.ndarray, Kt: np.ndarray, residual: bool) -> float:
+        """Subtract J^T W from R (if ``residual``) and the material stiffness from Kt."""
+        Q = np.zeros(0)
+        if residual:
+            Rt = np.swapaxes(term.g[:, :3, :3], 1, 2)
+            W = np.concatenate([np.einsum('pij,pj->pi', Rt, term.m),
+                                np.einsum('pij,pj->pi', Rt, term.f)], axis=1)
+            Q = np.einsum('pin,pi->n', term.J, W)
+            R -= Q
         if term.dfdp is not None:
             D = term.g[:, :3, :3] @ term.J[:, 3:, :]          # (P, 3, n) world dp/dq
             Kt -= np.einsum('pin,pij,pjm->nm', D, term.dfdp, D)
@@ -174,21 +176,33 @@ class Statics:
         lin = skew(np.einsum('kij,kj->ki', Rt, F)) @ J[:, :3, :]
         return np.concatenate([ang, lin], axis=1)
 
-    def _geometric(self, kin: Kinematics, terms: list[LoadTerm], point_terms) -> np.ndarray:
+    @staticmethod
+    def _lam(g, F, M):
+        """Return the body internal wrench (K, 6) at frames g from distal loads F, M."""
+        Rt = np.swapaxes(g[:, :3, :3], 1, 2)
+        return np.concatenate([np.einsum('kij,kj->ki', Rt, M - np.cross(g[:, :3, 3], F)),
+                               np.einsum('kij,kj->ki', Rt, F)], axis=1)
+
+    def _geometric(self, kin: Kinematics, terms: list[LoadTerm], point_terms):
         """
-        Return d/dq of the quadrature form of all dead loads (the geometric stiffness).
+        Return (Q, dQ/dq): point loads in quadrature form, and the geometric stiffness.
 
         The internal wrench at X from everything distal is smooth between load points, so
         each point load's own segment is integrated by a Gauss rule on [segment start, X_c]
-        and the segments before it on the regular nodes; gravity (already lumped on the
-        regular nodes) uses those nodes.
+        and the segments before it on the regular nodes: Q = int_0^Xc Phi^T Lambda dX is the
+        continuum virtual work, exact for a constant internal wrench (pure moment, tendon)
+        whatever the basis order. Gravity (lumped on the regular nodes) adds to the
+        tangent only; its residual is J^T W at those nodes.
         """
         rod = self.rod
         ng, n = len(rod.gauss_X), rod.n
         Fb = np.zeros((ng + 1, 3))
         Mb = np.zeros((ng + 1, 3))
         dMb = np.zeros((ng + 1, 3, n))
+        Fp = np.zeros((ng + 1, 3))
+        Mp = np.zeros((ng + 1, 3))
         extra = np.zeros((n, n))
+        Qp = np.zeros(n)
         xg, wg = np.polynomial.legendre.leggauss(len(rod.gauss_X) // rod.nseg)
         for t, is_point in zip(terms, point_terms):
             if len(t.X) == 0:
@@ -209,10 +223,13 @@ class Statics:
                     wq = x[i] * wg / 2
                     gq, Jq = rod.at(kin, Xq)
                     phq = rod.phi(np.full(len(Xq), seg[i]), Xq - start[i])
-                    dl = self._dlam(gq, Jq, np.broadcast_to(t.f[i], (len(Xq), 3)),
-                                    np.broadcast_to(fm[i], (len(Xq), 3)),
-                                    np.broadcast_to(dfm[i], (len(Xq), 3, n)))
+                    Fq = np.broadcast_to(t.f[i], (len(Xq), 3))
+                    Mq = np.broadcast_to(fm[i], (len(Xq), 3))
+                    dl = self._dlam(gq, Jq, Fq, Mq, np.broadcast_to(dfm[i], (len(Xq), 3, n)))
                     extra += np.einsum('k,kin,kim->nm', wq, phq, dl)
+                    Qp += np.einsum('k,kin,ki->n', wq, phq, self._lam(gq, Fq, Mq))
+                np.add.at(Fp, b, t.f)
+                np.add.at(Mp, b, fm)
             else:
                 b = np.searchsorted(rod.gauss_X, t.X + 1e-15, side='right')
             np.add.at(Fb, b, t.f)
@@ -222,8 +239,13 @@ class Statics:
         F = np.cumsum(Fb[::-1], axis=0)[::-1][1:]
         M = np.cumsum(Mb[::-1], axis=0)[::-1][1:]
         dM = np.cumsum(dMb[::-1], axis=0)[::-1][1:]
-        dl = self._dlam(kin.g[rod.gauss_node], kin.J[rod.gauss_node], F, M, dM)
-        return np.einsum('k,kin,kim->nm', rod.gauss_w, rod.phi_g, dl) + extra
+        gk = kin.g[rod.gauss_node]
+        dl = self._dlam(gk, kin.J[rod.gauss_node], F, M, dM)
+        Kg = np.einsum('k,kin,kim->nm', rod.gauss_w, rod.phi_g, dl) + extra
+        lam = self._lam(gk, np.cumsum(Fp[::-1], axis=0)[::-1][1:],
+                        np.cumsum(Mp[::-1], axis=0)[::-1][1:])
+        Qp += np.einsum('k,kin,ki->n', rod.gauss_w, rod.phi_g, lam)
+        return Qp, Kg
 
     def assemble(self, q, u, loads, factor: float = 1.0, contact=None) -> Assembly:
         """Residual ``K q - Q`` and its tangent at ``q`` (``factor`` scales u and loads)."""
@@ -265,10 +287,13 @@ class Statics:
             if cterm is not None:
                 terms.append(cterm)
                 is_point.append(True)
-        for t in terms:
-            scale = max(scale, self._apply(t, R, Kt))
+        for t, point in zip(terms, is_point):
+            scale = max(scale, self._apply(t, R, Kt, residual=not point))
         if terms:
-            Kt -= self._geometric(kin, terms, is_point)
+            Qp, Kg = self._geometric(kin, terms, is_point)
+            R -= Qp
+            Kt -= Kg
+            scale = max(scale, float(np.abs(Qp).max()))
         energies.append(float(extra.get('energy', 0.0)))
         energy = float(sum(energies)) if conservative else None
         return Assembly(R, Kt, scale, kin, extra, energy, float(sum(abs(e) for e in energies)))
