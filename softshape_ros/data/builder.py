@@ -210,8 +210,9 @@ def build_dataset(bags, out, cfg, gray=None, overwrite: bool = False, progress: 
         s = _read_bag(bag, cfg, gray, size, progress)
         dropped['malformed_sample_json'] += s.bad_samples
         triggers += len(s.triggers)
-        # The rest images of each scene: its last complete, settled rest trigger.
-        rest = {}
+        # The rest images of a sample: its scene's latest complete, settled rest trigger
+        # before it (a scene may be re-rested; a later rest never applies backwards).
+        rest = defaultdict(list)
         for stamp in sorted(st for st, d in s.samples.items() if d['kind'] == 'rest'):
             d = s.samples[stamp]
             imgs, why = _check(s, stamp, cams, max_skew_ns)
@@ -220,7 +221,7 @@ def build_dataset(bags, out, cfg, gray=None, overwrite: bool = False, progress: 
             if why is not None:
                 dropped[f'rest_{why}'] += 1
                 continue
-            rest[d['scene_id']] = imgs
+            rest[d['scene_id']].append((stamp, imgs))
         local_ids = {}
         for stamp in sorted(st for st, d in s.samples.items() if d['kind'] == 'actuation'):
             d = s.samples[stamp]
@@ -230,7 +231,8 @@ def build_dataset(bags, out, cfg, gray=None, overwrite: bool = False, progress: 
                 why = 'unsettled'
             if why is None and d['scene_id'] not in s.scenes:
                 why = 'unknown_scene'
-            if why is None and d['scene_id'] not in rest:
+            before = [r for r in rest.get(d['scene_id'], []) if r[0] < stamp]
+            if why is None and not before:
                 why = 'no_rest_images'
             if why is None:
                 p = _nearest_pressure(s, stamp, bound_ns)
@@ -246,7 +248,7 @@ def build_dataset(bags, out, cfg, gray=None, overwrite: bool = False, progress: 
                 local_ids[sid] = gid
                 scene_map.append({'bag': str(bag), 'scene_id': sid, 'index': gid,
                                   'scene': json.loads(s.scenes[sid].to_json())})
-            rows.append((rest[sid], imgs, p, local_ids[sid], str(bag), stamp))
+            rows.append((before[-1][1], imgs, p, local_ids[sid], str(bag), stamp))
         trig_without_sample = s.triggers - set(s.samples)
         dropped['trigger_without_sample'] += len(trig_without_sample)
     dropped = {k: v for k, v in dropped.items() if v}
