@@ -38,15 +38,14 @@ def test_mock_rig_session_to_dataset(ros, tmp_path):
     rec = ros.add(Recorder(parameter_overrides=_params(output=str(bag),
                                                        discovery_period_s=0.1)))
     ros.add(MockHardware(parameter_overrides=_params(tau_s=0.02)))
-    ros.wait_for(lambda: {cfg.topics.pressure_measured, cfg.topics.camera('camera_image',
-                                                                           'main')}
-                 <= set(rec.subs), timeout=30, what='recorder on the mock topics')
+    main_topic = cfg.topics.camera('camera_image', 'main')
+    ros.wait_for(lambda: {cfg.topics.pressure_measured, main_topic} <= set(rec.subs),
+                 timeout=30, what='recorder on the mock topics')
     col = ros.add(Collector(parameter_overrides=_params(
         session_file=str(session), rate_hz=4.0, rest_delay_s=0.1, start_delay_s=1.0,
         max_fraction=0.5, seed=3)))
     ros.wait_for(col.done.is_set, timeout=90, what='collection session to finish')
     assert col.state == 'done', col.error
-    main_topic = cfg.topics.camera('camera_image', 'main')
     ros.wait_for(lambda: rec.recording.received[main_topic] >= col.samples, timeout=60,
                  what='every trigger frame recorded')
     time.sleep(0.5)
