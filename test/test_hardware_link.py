@@ -96,6 +96,7 @@ def test_virtual_due_faults_are_visible_on_the_wire(tmp_path):
 
         assert len(read_states(0.3)) >= 15             # 100 Hz stream
         vd.corrupt_tx = 1.0                            # every write corrupted: nothing passes
+        read_states(0.05)                              # what was already on its way
         bad0 = parser.bad_crc
         assert read_states(0.2) == [] and parser.bad_crc > bad0
         vd.corrupt_tx = 0.0

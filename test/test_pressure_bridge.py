@@ -79,7 +79,7 @@ def start_bridge(ros, vd, **params):
 
     from softshape_ros.nodes.pressure_bridge import PressureBridge
     p = {'port': vd.path, 'max_pressure_pa': PARAM_LIMITS, 'watchdog_timeout_s': 30.0,
-         'firmware_watchdog_s': 0.5, 'diagnostics_period_s': 0.2}
+         'firmware_watchdog_s': 1.0, 'link_timeout_s': 1.0, 'diagnostics_period_s': 0.2}
     p.update(params)
     node = ros.add(PressureBridge(parameter_overrides=[Parameter(k, value=v)
                                                        for k, v in p.items()]))
@@ -186,15 +186,21 @@ def test_faults_never_let_anything_but_commanded_values_through(ros, vdue):
     vdue.drop_tx, vdue.corrupt_tx = 0.003, 0.2
     vdue.inject(bytes(rng.integers(0, 256, 300, dtype=np.uint8)) + b'\xa5\x5a\x03\x1a')
     burst(40)
-    final = rng.uniform(0, 1.0, 6) * LIMITS
-    commanded.add(expected(final))
-    c.command(final)
-    ros.wait_for(lambda: vdue.applied()[-1].setpoints_pa == expected(final), 5,
-                 what='the last command to get through the noise')
+    time.sleep(0.2)
     assert vdue.stats['rx_corrupted'] > 0 and vdue.stats['tx_corrupted'] > 0
     assert node.link.counters['bad_frames'] > 0
     assert vdue.core.rx_errors > 0
-    vdue.drop_rx = vdue.corrupt_rx = vdue.drop_tx = vdue.corrupt_tx = 0.0
+    # a command that cannot get through is retransmitted until acknowledged
+    vdue.corrupt_rx = vdue.drop_tx = vdue.corrupt_tx = 0.0
+    vdue.drop_rx = 1.0
+    final = np.round(rng.uniform(0, 1.0, 6) * LIMITS)
+    commanded.add(expected(final))
+    c.command(final)
+    ros.wait_for(lambda: node.link.counters['retransmits'] >= 2, 5, what='retransmissions')
+    assert vdue.applied()[-1].setpoints_pa != expected(final)
+    vdue.drop_rx = 0.0
+    ros.wait_for(lambda: vdue.applied()[-1].setpoints_pa == expected(final), 5,
+                 what='the retransmitted command to arrive')
 
     # disconnect: diagnostics ERROR, commands not applied, the node stays up
     vdue.disconnect()
@@ -217,7 +223,7 @@ def test_faults_never_let_anything_but_commanded_values_through(ros, vdue):
     ros.wait_for(lambda: vdue.applied()[-1].setpoints_pa == tuple(fresh), 5, what='fresh')
 
     # stall: the host sees silence, drops and re-opens the link, and recovers
-    vdue.stall(1.0)
+    vdue.stall(2.0)
     ros.wait_for(lambda: not node.link.connected, 5, what='stall detected')
     ros.wait_for(lambda: node.link.connected, 10, what='recovered after stall')
     c.command(fresh)

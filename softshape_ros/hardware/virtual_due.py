@@ -43,7 +43,7 @@ class VirtualDue:
 
     def __init__(self, fw_limits_pa=None, link: str | os.PathLike | None = None,
                  tau_s: float = 0.03, noise_pa: float = 30.0, seed: int = 0,
-                 period_s: float = 0.0005):
+                 period_s: float = 0.002):
         if fw_limits_pa is None:
             from softshape_ros.config import load_rig_config
             fw_limits_pa = load_rig_config().max_pressures_pa

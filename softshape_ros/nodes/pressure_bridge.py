@@ -46,6 +46,7 @@ class PressureBridge(Node):
         self.limits = [min(a, b) for a, b in zip(lim, cfg_lim)]
         self.watchdog_timeout_s = float(par('watchdog_timeout_s', 3.0).value)
         fw_watchdog_s = float(par('firmware_watchdog_s', 0.5).value)
+        link_timeout_s = float(par('link_timeout_s', 0.5).value)
         state_rate = int(par('state_rate_hz', 100).value)
         diag_period = float(par('diagnostics_period_s', 1.0).value)
         self.frame_id = str(par('frame_id', 'due').value)
@@ -67,7 +68,7 @@ class PressureBridge(Node):
         self.last_reject = ''
         self.last_event = ''
         self.link = DueLink(self.port, self.limits, baud=baud, state_rate_hz=state_rate,
-                            fw_watchdog_s=fw_watchdog_s,
+                            fw_watchdog_s=fw_watchdog_s, stale_timeout_s=link_timeout_s,
                             clock_ns=lambda: self.get_clock().now().nanoseconds,
                             on_state=self._on_state, on_event=self._on_event)
         self.link.start()
