@@ -94,7 +94,7 @@ class Responder:
 def _collector(ros, **params):
     from softshape_ros.nodes.collector import Collector
     base = {'rate_hz': 20.0, 'rest_delay_s': 0.05, 'start_delay_s': 0.1,
-            'settle_timeout_s': 1.0}
+            'settle_timeout_s': 1.0, 'wait_for_frames': False}
     base.update(params)
     overrides = [Parameter(k, value=v) for k, v in base.items()]
     return ros.add(Collector(parameter_overrides=overrides))
@@ -160,6 +160,7 @@ def test_operator_mode_waits_for_next_scene_service(ros, tmp_path):
     ros.wait_for(fut.done, what='service answer')
     assert fut.result().success
     ros.wait_for(col.done.is_set, timeout=30, what='session done')
+    ros.wait_for(lambda: len(resp.samples) == 2, what='both records')
     assert [s['kind'] for s in resp.samples] == ['rest', 'actuation']
 
 
@@ -184,7 +185,8 @@ def test_sigint_mid_session_vents(ros, tmp_path):
     proc = subprocess.Popen(
         [sys.executable, '-c', 'from softshape_ros.nodes.collector import main; main()',
          '--ros-args', '-p', f'session_file:={_session(tmp_path, 1, 50)}', '-p', 'rate_hz:=5.0',
-         '-p', 'start_delay_s:=0.1', '-p', 'rest_delay_s:=0.05'],
+         '-p', 'start_delay_s:=0.1', '-p', 'rest_delay_s:=0.05',
+         '-p', 'wait_for_frames:=false'],
         env=dict(os.environ), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         ros.wait_for(lambda: any(any(c) for c in resp.commands), timeout=60,

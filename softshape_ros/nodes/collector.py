@@ -24,7 +24,7 @@ import yaml
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.duration import Duration
 from rclpy.node import Node
-from sensor_msgs.msg import JointState
+from sensor_msgs.msg import JointState, TimeReference
 from std_msgs.msg import Float64MultiArray, Header, String
 from std_srvs.srv import Trigger
 
@@ -122,6 +122,8 @@ class Collector(Node):
         self.actuations_override = int(par('actuations', -1).value)
         self.wait_for_operator = bool(par('wait_for_operator', False).value)
         self.start_delay_s = float(par('start_delay_s', 0.5).value)
+        self.wait_for_frames = bool(par('wait_for_frames', True).value)
+        self.frame_timeout_s = float(par('frame_timeout_s', 10.0).value)
 
         self.limits = self.cfg.max_pressures_pa
         self.scenes = []
@@ -150,17 +152,22 @@ class Collector(Node):
         self.pub_diag = self.create_publisher(DiagnosticArray, t.diagnostics, RELIABLE_QOS)
         self.create_subscription(JointState, t.pressure_measured, self._on_measured,
                                  RELIABLE_QOS)
+        for cam in self.cfg.camera_names:
+            self.create_subscription(TimeReference, t.camera('capture_time', cam),
+                                     lambda m, c=cam: self._on_frame(c, m), RELIABLE_QOS)
         self.create_service(Trigger, '~/next_scene', self._on_next_scene)
         self.create_timer(1.0, self._publish_diagnostics)
 
         self._cond = threading.Condition()
         self._measured = None          # (stamp_ns, np.ndarray)
+        self._frames: dict = {}        # trigger stamp_ns -> cameras that answered it
         self._operator_ready = threading.Event()
         self._stop = threading.Event()
         self.state = 'idle: no session_file' if not self.scenes else 'starting'
         self.samples = 0
         self.unsettled = 0
         self.clamped = 0
+        self.missing_frames = 0
         self.done = threading.Event()
         self.worker = None
         if self.scenes:
@@ -191,6 +198,31 @@ class Collector(Node):
         with self._cond:
             self._measured = (stamp_to_ns(msg.header.stamp), a)
             self._cond.notify_all()
+
+    def _on_frame(self, camera: str, msg: TimeReference) -> None:
+        with self._cond:
+            self._frames.setdefault(stamp_to_ns(msg.header.stamp), set()).add(camera)
+            while len(self._frames) > 64:
+                self._frames.pop(next(iter(self._frames)))
+            self._cond.notify_all()
+
+    def _wait_frames(self, stamp_ns: int) -> None:
+        """Hold the next actuation until every camera answered (the simulator can be slow)."""
+        want = set(self.cfg.camera_names)
+        deadline = time.monotonic() + self.frame_timeout_s
+        with self._cond:
+            while not want <= self._frames.get(stamp_ns, set()):
+                left = deadline - time.monotonic()
+                if left <= 0 or self._stop.is_set():
+                    break
+                self._cond.wait(min(left, 0.05))
+            missing = sorted(want - self._frames.get(stamp_ns, set()))
+        if self._stop.is_set():
+            raise _Stopped
+        if missing:
+            self.missing_frames += 1
+            self.get_logger().warning(f'trigger {stamp_ns}: no frame from {", ".join(missing)} '
+                                      f'within {self.frame_timeout_s:g} s')
 
     def _on_next_scene(self, request, response):
         self._operator_ready.set()
@@ -281,6 +313,10 @@ class Collector(Node):
         self.unsettled += 0 if settled else 1
         return ns
 
+    def _after_trigger(self, stamp_ns: int) -> None:
+        if self.wait_for_frames:
+            self._wait_frames(stamp_ns)
+
     def _run(self) -> None:
         log = self.get_logger()
         self.state = 'waiting for the rig'
@@ -305,7 +341,7 @@ class Collector(Node):
                 sent = time.time_ns()
             settled = self._wait_settled(zeros, sent)
             self._sleep(self.rest_delay_s)
-            self._trigger(scene.id, 'rest', 0, zeros, settled)
+            self._after_trigger(self._trigger(scene.id, 'rest', 0, zeros, settled))
             log.info(f'scene {k}/{S} (id {scene.id}, {scene.object}): rest images, '
                      f'{n} actuations to go')
             next_t = time.monotonic()
@@ -316,7 +352,7 @@ class Collector(Node):
                 sent = time.time_ns()
                 cmd = self._send(self.plan.next())
                 settled = self._wait_settled(cmd, sent)
-                self._trigger(scene.id, 'actuation', i, cmd, settled)
+                self._after_trigger(self._trigger(scene.id, 'actuation', i, cmd, settled))
                 log.info(f'scene {k}/{S} sample {i + 1}/{n}'
                          + ('' if settled else ' (unsettled)'))
             self._sleep(next_t - time.monotonic())   # the last frame is taken before venting
@@ -330,15 +366,17 @@ class Collector(Node):
     def _publish_diagnostics(self) -> None:
         if self.state == 'failed':
             level, msg = ERROR, f'session failed: {self.error}'
-        elif self.unsettled:
-            level, msg = WARN, f'{self.state}; {self.unsettled} sample(s) unsettled'
+        elif self.unsettled or self.missing_frames:
+            level, msg = WARN, (f'{self.state}; {self.unsettled} sample(s) unsettled, '
+                                f'{self.missing_frames} trigger(s) missing frames')
         else:
             level, msg = OK, self.state
         publish_diagnostics(self, self.pub_diag, [diagnostic_status(
             'collector', 'session', level, msg,
             {'scenes': len(self.scenes), 'triggers': self.samples, 'unsettled': self.unsettled,
-             'clamped_commands': self.clamped, 'tolerance_pa': self.tolerance_pa,
-             'settle_timeout_s': self.settle_timeout_s, 'period_s': self.period_s})])
+             'clamped_commands': self.clamped, 'missing_frames': self.missing_frames,
+             'tolerance_pa': self.tolerance_pa, 'settle_timeout_s': self.settle_timeout_s,
+             'period_s': self.period_s})])
 
     def on_shutdown(self) -> None:
         self._stop.set()

@@ -1,0 +1,224 @@
+"""
+The simulated rig on the real rig's topics: pressure bridge + both cameras, backed by SimRig.
+
+Commands are checked and clamped exactly as the bridge does (check_command); six
+first-order regulators follow them and the measured pressures go out at ~100 Hz. On each
+trigger the pressures are sampled (and published, stamped with that instant), the
+simulator is solved at them in the current scene (from the latched /rig/scene) and both
+camera images go out under the trigger's stamp, with CameraInfo of the simulated pinhole
+cameras and a TimeReference saying when the pressures were sampled. Solving runs in a
+worker thread so the pressure loop keeps its rate; scene changes and triggers are applied
+in arrival order.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+import time
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.node import Node
+from sensor_msgs.msg import CameraInfo, Image, JointState, TimeReference
+from std_msgs.msg import Float64MultiArray, Header, String
+
+from softshape_ros.hardware.pressure import CommandError, FirstOrderRegulator, check_command
+from softshape_ros.nodes.camera_trigger import IMAGE_QOS, camera_info_msg, time_reference_msg
+from softshape_ros.nodes.common import (ERROR, LATCHED_QOS, OK, RELIABLE_QOS, SENSOR_QOS, WARN,
+                                        declare_rig_config, diagnostic_status, main_wrapper,
+                                        ns_to_stamp, numpy_to_image, publish_diagnostics)
+from softshape_ros.scene import Scene, SceneError
+from softshape_ros.sim import SimRig, SolverError
+from softshape_ros.vision.camera_info import calibration_from_camera
+
+
+class MockHardware(Node):
+    """Bridge + cameras stand-in: regulators, watchdog, SimRig images per trigger."""
+
+    def __init__(self, **kwargs):
+        super().__init__('mock_hardware', **kwargs)
+        self.cfg = declare_rig_config(self)
+        par = self.declare_parameter
+        tau_s = float(par('tau_s', 0.05).value)
+        rate = float(par('publish_rate_hz', 100.0).value)
+        self.pressure_noise_pa = float(par('pressure_noise_pa', 0.0).value)
+        image_noise_std = float(par('image_noise_std', 0.0).value)
+        seed = int(par('seed', 0).value)
+        self.command_timeout_s = float(par('command_timeout_s', 0.0).value)
+        max_queue = int(par('max_pending_triggers', 8).value)
+        if rate <= 0 or tau_s < 0 or self.pressure_noise_pa < 0 or image_noise_std < 0:
+            raise ValueError('publish_rate_hz must be > 0 and tau_s, pressure_noise_pa, '
+                             'image_noise_std >= 0')
+
+        self.limits = self.cfg.max_pressures_pa
+        self.regulator = FirstOrderRegulator(tau_s, len(self.limits))
+        self.rng = np.random.default_rng(seed)
+        self.rig = SimRig(self.cfg, seed=seed, image_noise_std=image_noise_std,
+                          pressure_noise_pa=0.0)
+        self.rig.set_scene(None)
+        self.scene = None
+        self.calibrations = {n: calibration_from_camera(n, c) for n, c in self.cfg.cameras.items()}
+
+        t = self.cfg.topics
+        self.pub_measured = self.create_publisher(JointState, t.pressure_measured, RELIABLE_QOS)
+        qos = IMAGE_QOS if par('reliable_images', True).value else SENSOR_QOS
+        self.pub_image, self.pub_info, self.pub_time = {}, {}, {}
+        for cam in self.cfg.camera_names:
+            self.pub_image[cam] = self.create_publisher(
+                Image, t.camera('camera_image', cam), qos)
+            self.pub_info[cam] = self.create_publisher(
+                CameraInfo, t.camera('camera_info', cam), qos)
+            self.pub_time[cam] = self.create_publisher(
+                TimeReference, t.camera('capture_time', cam), RELIABLE_QOS)
+        self.pub_diag = self.create_publisher(DiagnosticArray, t.diagnostics, RELIABLE_QOS)
+        self.create_subscription(Float64MultiArray, t.pressure_command, self._on_command,
+                                 RELIABLE_QOS)
+        self.create_subscription(String, t.scene, self._on_scene, LATCHED_QOS)
+        self.create_subscription(Header, t.trigger, self._on_trigger, RELIABLE_QOS)
+
+        self.rejected = 0
+        self.clamped = 0
+        self.watchdog_vents = 0
+        self.frames = 0
+        self.solver_errors = 0
+        self.dropped = 0
+        self.last_error = ''
+        self.last_command = time.monotonic()
+        self._last_step = time.monotonic()
+        self.jobs: queue.Queue = queue.Queue(maxsize=max(1, max_queue))
+        self._stop = threading.Event()
+        self.worker = threading.Thread(target=self._work, name='mock-cameras', daemon=True)
+        self.worker.start()
+        self.create_timer(1.0 / rate, self._tick)
+        self.create_timer(1.0, self._publish_diagnostics)
+        self.get_logger().info(f'simulated rig: regulators tau {tau_s:g} s, measured at '
+                               f'{rate:g} Hz, cameras {", ".join(self.cfg.camera_names)}')
+
+    # -- pressures --------------------------------------------------------------------------
+    def _on_command(self, msg: Float64MultiArray) -> None:
+        try:
+            checked = check_command(msg.data, self.limits)
+        except CommandError as exc:
+            self.rejected += 1
+            self.last_error = str(exc)
+            self.get_logger().error(f'command rejected, nothing applied: {exc}')
+            return
+        if checked.clamped:
+            self.clamped += 1
+            self.get_logger().warning(f'command clamped to the limits at chambers '
+                                      f'{list(checked.clamped)}')
+        self._advance()
+        self.regulator.setpoint = checked.pressures_pa.copy()
+        self.last_command = time.monotonic()
+
+    def _advance(self) -> np.ndarray:
+        now = time.monotonic()
+        p = self.regulator.step(now - self._last_step)
+        self._last_step = now
+        return p
+
+    def _measure(self, stamp_ns: int) -> np.ndarray:
+        p = self._advance()
+        if self.pressure_noise_pa > 0:
+            p = np.clip(p + self.rng.normal(0.0, self.pressure_noise_pa, p.shape), 0.0, None)
+        msg = JointState()
+        msg.header.stamp = ns_to_stamp(stamp_ns)
+        msg.name = list(self.cfg.chamber_names)
+        msg.effort = [float(v) for v in p]
+        self.pub_measured.publish(msg)
+        return p
+
+    def _tick(self) -> None:
+        if (self.command_timeout_s > 0 and np.any(self.regulator.setpoint > 0)
+                and time.monotonic() - self.last_command > self.command_timeout_s):
+            self.regulator.setpoint[:] = 0.0
+            self.watchdog_vents += 1
+            self.get_logger().warning(f'no command for {self.command_timeout_s:g} s: venting')
+        self._measure(self.get_clock().now().nanoseconds)
+
+    # -- scene and cameras ---------------------------------------------------------------------
+    def _on_scene(self, msg: String) -> None:
+        try:
+            scene = Scene.from_json(msg.data)
+        except SceneError as exc:
+            self.last_error = str(exc)
+            self.get_logger().error(f'scene ignored, keeping the previous one: {exc}')
+            return
+        self._enqueue(('scene', scene))
+
+    def _on_trigger(self, msg: Header) -> None:
+        sampled_ns = self.get_clock().now().nanoseconds
+        pressures = self._measure(sampled_ns)
+        self._enqueue(('snap', msg.stamp, pressures, sampled_ns))
+
+    def _enqueue(self, job) -> None:
+        try:
+            self.jobs.put_nowait(job)
+        except queue.Full:
+            self.dropped += 1
+            self.get_logger().error('simulator is behind: trigger dropped, no images for it')
+
+    def _work(self) -> None:
+        while not self._stop.is_set():
+            try:
+                job = self.jobs.get(timeout=0.1)
+            except queue.Empty:
+                continue
+            if job[0] == 'scene':
+                try:
+                    self.rig.set_scene(job[1])
+                    self.scene = job[1]
+                    self.get_logger().info(f'scene {job[1].id}: {job[1].object}')
+                except Exception as exc:  # a scene the simulator cannot build: keep the old
+                    self.last_error = f'scene {job[1].id}: {exc}'
+                    self.get_logger().error(f'scene {job[1].id} not applied: {exc}')
+                continue
+            _, stamp, pressures, sampled_ns = job
+            try:
+                images = self.rig.snap(pressures)
+            except SolverError as exc:
+                self.solver_errors += 1
+                self.last_error = str(exc)
+                self.get_logger().error(f'simulator failed at {list(pressures)} Pa: {exc}; '
+                                        'no images for this trigger')
+                continue
+            for cam in self.cfg.camera_names:
+                frame_id = self.cfg.cameras[cam].frame_id
+                self.pub_image[cam].publish(numpy_to_image(images[cam], stamp, frame_id))
+                self.pub_info[cam].publish(
+                    camera_info_msg(self.calibrations[cam], stamp, frame_id))
+                self.pub_time[cam].publish(
+                    time_reference_msg(stamp, sampled_ns, cam, frame_id))
+            self.frames += 1
+
+    def _publish_diagnostics(self) -> None:
+        if self.solver_errors or self.dropped:
+            level = ERROR
+        elif self.rejected or self.clamped:
+            level = WARN
+        else:
+            level = OK
+        p = self.regulator.pressure
+        publish_diagnostics(self, self.pub_diag, [
+            diagnostic_status('mock_hardware: pressure', 'simulated regulators',
+                              WARN if self.rejected or self.clamped else OK,
+                              self.last_error if self.rejected else 'regulating',
+                              {'measured_pa': [round(float(v)) for v in p],
+                               'rejected_commands': self.rejected,
+                               'clamped_commands': self.clamped,
+                               'watchdog_vents': self.watchdog_vents}),
+            diagnostic_status('mock_hardware: cameras', 'SimRig', level,
+                              self.last_error if level == ERROR else 'simulating',
+                              {'frames': self.frames, 'solver_errors': self.solver_errors,
+                               'dropped_triggers': self.dropped,
+                               'scene': self.scene.id if self.scene else None}),
+        ])
+
+    def on_shutdown(self) -> None:
+        self._stop.set()
+        self.worker.join(timeout=10.0)
+        self.regulator.setpoint[:] = 0.0
+
+
+main = main_wrapper(MockHardware)

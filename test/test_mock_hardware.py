@@ -1,0 +1,122 @@
+"""mock_hardware on its own: command validation, regulators, watchdog, scenes, noise."""
+
+import threading
+
+import numpy as np
+import pytest
+from rclpy.parameter import Parameter
+
+pytestmark = pytest.mark.ros
+
+
+class Probe:
+    def __init__(self, ros):
+        from diagnostic_msgs.msg import DiagnosticArray
+        from sensor_msgs.msg import Image, JointState
+        from std_msgs.msg import Float64MultiArray, Header, String
+
+        from softshape_ros.config import load_rig_config
+        from softshape_ros.nodes.common import LATCHED_QOS, RELIABLE_QOS
+        self.cfg = load_rig_config()
+        t = self.cfg.topics
+        self.node = ros.node('mock_probe')
+        self.lock = threading.Lock()
+        self.measured, self.images, self.diags = [], [], {}
+        self.cmd = self.node.create_publisher(Float64MultiArray, t.pressure_command,
+                                              RELIABLE_QOS)
+        self.trig = self.node.create_publisher(Header, t.trigger, RELIABLE_QOS)
+        self.scene = self.node.create_publisher(String, t.scene, LATCHED_QOS)
+        self.node.create_subscription(JointState, t.pressure_measured,
+                                      lambda m: self._add(self.measured, m), RELIABLE_QOS)
+        self.node.create_subscription(Image, t.camera('camera_image', 'main'),
+                                      lambda m: self._add(self.images, m), RELIABLE_QOS)
+        self.node.create_subscription(DiagnosticArray, t.diagnostics, self._diag, RELIABLE_QOS)
+        self.F, self.H, self.S = Float64MultiArray, Header, String
+
+    def _add(self, where, m):
+        with self.lock:
+            where.append(m)
+
+    def _diag(self, m):
+        with self.lock:
+            for s in m.status:
+                self.diags[s.name] = (s.level[0], s.message, {kv.key: kv.value for kv in s.values})
+
+    def last(self):
+        with self.lock:
+            return np.asarray(self.measured[-1].effort) if self.measured else None
+
+    def send(self, values):
+        self.cmd.publish(self.F(data=[float(v) for v in values]))
+
+
+def _mock(ros, **params):
+    from softshape_ros.nodes.mock_hardware import MockHardware
+    base = {'tau_s': 0.02}
+    base.update(params)
+    return ros.add(MockHardware(parameter_overrides=[Parameter(k, value=v)
+                                                     for k, v in base.items()]))
+
+
+def test_commands_are_validated_clamped_and_followed(ros):
+    probe = Probe(ros)
+    mock = _mock(ros)
+    ros.wait_for(lambda: probe.last() is not None and probe.cmd.get_subscription_count(),
+                 what='measured pressures')
+    assert list(probe.measured[-1].name) == probe.cfg.chamber_names
+    target = [10000.0, 20000.0, 0.0, 0.0, 5000.0, 1.0e6]       # the last one is over its limit
+    probe.send(target)
+    expect = np.minimum(target, probe.cfg.max_pressures_pa)
+    ros.wait_for(lambda: np.allclose(probe.last(), expect, atol=1.0), what='regulators settle')
+    for bad in ([1.0] * 5, [float('nan')] + [0.0] * 5, [-1.0] + [0.0] * 5):
+        probe.send(bad)
+    ros.wait_for(lambda: mock.rejected == 3, what='three rejected commands')
+    assert mock.clamped == 1
+    assert np.allclose(probe.last(), expect, atol=1.0)          # nothing bad was applied
+    ros.wait_for(lambda: probe.diags.get('mock_hardware: pressure', (0,))[0] == 1,
+                 what='diagnostics WARN', timeout=5)
+
+
+def test_watchdog_vents_and_noise_options(ros):
+    probe = Probe(ros)
+    mock = _mock(ros, command_timeout_s=0.3, pressure_noise_pa=500.0)
+    ros.wait_for(lambda: probe.cmd.get_subscription_count(), what='discovery')
+    probe.send([50000.0] * 6)
+    ros.wait_for(lambda: probe.last() is not None and probe.last().min() > 40000,
+                 what='pressurised')
+    ros.wait_for(lambda: mock.watchdog_vents == 1, what='watchdog vent', timeout=5)
+    ros.wait_for(lambda: probe.last().max() < 5000, what='vented')
+    with probe.lock:
+        tail = np.array([m.effort for m in probe.measured[-20:]])
+    assert tail.std() > 50 and (tail >= 0).all()                 # noisy, never negative
+
+
+def test_scene_and_trigger_give_images_and_bad_scene_is_ignored(ros):
+    from softshape_ros.nodes.common import image_to_numpy, ns_to_stamp, stamp_to_ns
+    from softshape_ros.scene import Scene
+    from softshape_ros.sim import SimRig
+    probe = Probe(ros)
+    mock = _mock(ros, image_noise_std=4.0)
+    ros.wait_for(lambda: probe.trig.get_subscription_count()
+                 and probe.scene.get_subscription_count(), what='discovery')
+    scene = Scene(id=7, object='sphere', position_m=(0.02, 0.0, 0.02),
+                  dims={'radius_m': 0.006})
+    probe.scene.publish(probe.S(data=scene.to_json()))
+    ros.wait_for(lambda: mock.scene is not None and mock.scene.id == 7, what='scene applied')
+    probe.scene.publish(probe.S(data='{"id": 8, "object": "teapot"}'))
+    probe.scene.publish(probe.S(data='not json'))
+    import time
+    ns = time.time_ns()
+    probe.trig.publish(probe.H(stamp=ns_to_stamp(ns)))
+    ros.wait_for(lambda: len(probe.images) == 1 and mock.jobs.empty(), what='image', timeout=20)
+    assert mock.scene.id == 7 and 'malformed' in mock.last_error   # both bad ones ignored
+    msg = probe.images[0]
+    assert stamp_to_ns(msg.header.stamp) == ns
+    assert msg.header.frame_id == 'camera_main_optical_frame'
+    img = image_to_numpy(msg)
+    rig = SimRig(probe.cfg, seed=1)
+    rig.set_scene(scene)
+    clean = rig.snap(np.zeros(6))['main']
+    diff = img.astype(int) - clean.astype(int)
+    assert img.shape == clean.shape and 2.0 < diff.std() < 6.0   # the noise, nothing else
+    assert abs(diff.mean()) < 1.0
