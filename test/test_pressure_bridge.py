@@ -105,6 +105,23 @@ def test_tracks_commands_rejects_bad_ones_and_serves_vent_and_enable(ros, vdue):
     c.command(cmd)
     ros.wait_for(lambda: c.measured and np.allclose(c.measured[-1].effort, cmd, atol=1500),
                  5, what='measured pressures to track the command')
+    time.sleep(0.3)
+    # the step response follows the regulator lag, on the stamps the bridge assigned:
+    # this checks the pressures and the Due-clock -> ROS-time mapping together
+    step = next(a for a in vdue.applied() if a.setpoints_pa == tuple(cmd))
+    mono_to_ros = time.time() - time.monotonic()
+    t_apply = step.t + mono_to_ros
+    tau, slack, checked = vdue.tau_s, 0.004, 0
+    for m in list(c.measured):
+        ts = m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec - t_apply
+        if not 0.0 < ts < 0.3:
+            continue
+        for got, target in zip(m.effort, cmd):
+            lo = target * (1 - math.exp(-max(ts - slack, 0) / tau)) - 200
+            hi = target * (1 - math.exp(-(ts + slack) / tau)) + 200
+            assert lo <= got <= hi, f'{got:.0f} Pa at {1e3 * ts:.1f} ms, lag model [{lo}, {hi}]'
+        checked += 1
+    assert checked >= 5
     m = c.measured[-1]
     assert list(m.name) == NAMES
     stamp = m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec

@@ -212,16 +212,18 @@ class VirtualDue:
                     continue
                 now = time.monotonic()
                 core = self.core
-                if data:
-                    self.stats['rx_bytes'] += len(data)
-                    data = self._mangle(data, self.drop_rx, self.corrupt_rx, 'rx')
-                    core.receive(data, self.now_us())
-                self.regulator.setpoint[:] = core.setpoints
+                # the air moves up to now under the old set-points, then new bytes may
+                # change them: a command never acts before it arrived
                 p = self.regulator.step(now - last)
                 last = now
                 for i, v in enumerate(p):
                     noisy = v + self.rng.gauss(0.0, self.noise_pa) if self.noise_pa else v
                     core.set_measured(i, int(round(noisy)))
+                if data:
+                    self.stats['rx_bytes'] += len(data)
+                    data = self._mangle(data, self.drop_rx, self.corrupt_rx, 'rx')
+                    core.receive(data, self.now_us())
+                self.regulator.setpoint[:] = core.setpoints
                 core.tick(self.now_us())
                 out = core.take_tx()
                 out = self._mangle(out, self.drop_tx, self.corrupt_tx, 'tx')
