@@ -110,3 +110,48 @@ def test_bad_input_is_refused_clearly(tmp_path):
     assert not w.write('/h', 1, header(1))       # closed: refused, not crashed
     with pytest.raises(BagError, match='no such bag'):
         bag_info(tmp_path / 'missing')
+
+
+FULL_DISK_SCRIPT = r'''
+import json, resource, signal, sys
+from softshape_ros.data.bag_writer import BagWriter, TopicSpec
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+resource.setrlimit(resource.RLIMIT_FSIZE, (1_000_000, 1_000_000))
+w = BagWriter(sys.argv[1], storage=sys.argv[2])
+w.add_topic(TopicSpec.from_typestore('/b', 'std_msgs/msg/String'))
+ok = 0
+for i in range(400):
+    data = b'\x00\x01\x00\x00' + (5001).to_bytes(4, 'little') + b'%05d' % i + b'z' * 4995 + b'\0'
+    if not w.write('/b', 10**9 + i, data):
+        break
+    ok += 1
+    if i % 20 == 19:
+        w.flush()
+w.close()
+print(json.dumps({'accepted': ok, 'failed': w.failed, 'counts': w.counts}))
+'''
+
+
+@pytest.mark.parametrize('storage', ['mcap', 'sqlite3'])
+def test_full_disk_stops_cleanly_and_leaves_a_readable_bag(tmp_path, storage):
+    import json
+    import sqlite3
+    import subprocess
+    import sys
+    bag = tmp_path / 'full'
+    proc = subprocess.run([sys.executable, '-c', FULL_DISK_SCRIPT, str(bag), storage],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    out = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert out['failed'] and 'write failed' in out['failed'] and out['accepted'] < 400
+    meta = yaml.safe_load((bag / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
+    if storage == 'mcap':
+        _, msgs = mcap_messages(bag)
+        ids = [int(d.data[:5]) for _, _, d in msgs]
+    else:
+        con = sqlite3.connect(next(bag.glob('*.db3')))
+        ids = [int(bytes(d)[8:13]) for (d,) in
+               con.execute('SELECT data FROM messages ORDER BY timestamp')]
+        con.close()
+    assert len(ids) >= 20 and ids == list(range(len(ids)))     # a clean, flushed prefix
+    assert meta['message_count'] == len(ids) == out['counts'].get('/b', 0)
