@@ -286,9 +286,9 @@ class BagWriter:
 
     @property
     def counts(self) -> dict[str, int]:
-        total = defaultdict(int)
-        for fc in self.file_counts:
-            for k, v in fc.items():
+        total = defaultdict(int)      # read from other threads: iterate over copies
+        for fc in list(self.file_counts):
+            for k, v in list(fc.items()):
                 total[k] += v
         return dict(total)
 
