@@ -98,11 +98,9 @@ void loop() {
   read_inputs();
   core->tick(micros());
   write_outputs();                       // after every frame and every watchdog decision
+  // SAM core's SerialUSB.write() drops data while no host has the port open, and waits
+  // (bounded) for USB buffer space otherwise; the core's tx buffer is bounded too.
   uint8_t out[128];
   size_t k;
-  while (HOST.availableForWrite() > 0 &&
-         (k = core->take_tx(out, (size_t)HOST.availableForWrite() < sizeof(out)
-                                     ? (size_t)HOST.availableForWrite() : sizeof(out))) > 0) {
-    HOST.write(out, k);
-  }
+  while ((k = core->take_tx(out, sizeof(out))) > 0) HOST.write(out, k);
 }

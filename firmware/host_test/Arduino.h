@@ -1,6 +1,8 @@
-// Declarations of the few Arduino-core calls the sketch uses, so test_hardware_firmware.py
-// can type-check due_pressure_bridge.ino with g++ on the host (compile only, never linked:
-// the real build is `arduino-cli compile --fqbn arduino:sam:arduino_due_x_dbg`).
+// Declarations of the few Arduino calls the sketch uses, with the signatures of
+// arduino/ArduinoCore-sam (SerialUSB is its Serial_ from USB/USBAPI.h, which has no
+// availableForWrite()), so test_hardware_firmware.py can type-check due_pressure_bridge.ino
+// with g++ on the host. Compile only, never linked: the real build is
+// `arduino-cli compile --fqbn arduino:sam:arduino_due_x_dbg firmware/due_pressure_bridge`.
 #pragma once
 #include <stddef.h>
 #include <stdint.h>
@@ -14,7 +16,6 @@ struct SerialLike {
   void begin(uint32_t baud);
   int available();
   int read();
-  int availableForWrite();
   size_t write(const uint8_t* p, size_t n);
 };
 extern SerialLike SerialUSB;
