@@ -167,3 +167,20 @@ def test_no_camera_reports_error_and_late_triggers_are_dropped(ros, tmp_path):
     probe.trigger(time.time_ns() - 2_000_000_000)
     ros.wait_for(lambda: node2.dropped == 1, what='late trigger dropped')
     assert probe.images == []
+
+
+def test_free_run_publishes_at_the_camera_rate_stamped_with_capture_time(ros, tmp_path):
+    from softshape_ros.nodes.common import image_to_numpy, stamp_to_ns
+    from softshape_ros.vision.patterns import decode_index, write_folder
+    folder = write_folder(tmp_path / 'frames', 12)
+    probe = Probe(ros)
+    _camera(ros, source=str(folder), fps=20.0, free_run=True)
+    ros.wait_for(lambda: len(probe.images) >= 8, what='free-run frames without triggers')
+    with probe.lock:
+        msgs = list(probe.images)
+        times = {stamp_to_ns(m.header.stamp): stamp_to_ns(m.time_ref) for m in probe.times}
+    stamps = [stamp_to_ns(m.header.stamp) for m in msgs]
+    assert stamps == sorted(stamps) and len(set(stamps)) == len(stamps)
+    for m, s in zip(msgs, stamps):
+        assert times[s] == s                   # free-run: the stamp is the capture time
+        assert decode_index(image_to_numpy(m)) == int(s * 20.0 // 1_000_000_000) % 12

@@ -94,7 +94,7 @@ class Responder:
 def _collector(ros, **params):
     from softshape_ros.nodes.collector import Collector
     base = {'rate_hz': 20.0, 'rest_delay_s': 0.05, 'start_delay_s': 0.1,
-            'settle_timeout_s': 1.0, 'wait_for_frames': False}
+            'settle_timeout_s': 1.0, 'wait_for_frames': False, 'simulated': True}
     base.update(params)
     overrides = [Parameter(k, value=v) for k, v in base.items()]
     return ros.add(Collector(parameter_overrides=overrides))
@@ -115,7 +115,7 @@ def test_list_mode_session_order_records_and_venting(ros, tmp_path):
     plist = tmp_path / 'p.yaml'
     plist.write_text('pressures_pa: ' + json.dumps(rows) + '\n')
     resp = Responder(ros)
-    col = _collector(ros, session_file=str(_session(tmp_path)), mode='list',
+    col = _collector(ros, session=str(_session(tmp_path)), mode='list',
                      pressures_file=str(plist))
     ros.wait_for(col.done.is_set, timeout=30, what='session done')
     ros.wait_for(lambda: len(resp.samples) == 8 and len(resp.triggers) == 8
@@ -139,7 +139,7 @@ def test_list_mode_session_order_records_and_venting(ros, tmp_path):
 @pytest.mark.ros
 def test_unsettled_samples_are_marked_and_reported(ros, tmp_path):
     resp = Responder(ros, gain=0.5)                      # regulators that never reach
-    col = _collector(ros, session_file=str(_session(tmp_path, 1, 2)), settle_timeout_s=0.2,
+    col = _collector(ros, session=str(_session(tmp_path, 1, 2)), settle_timeout_s=0.2,
                      seed=1)
     ros.wait_for(col.done.is_set, timeout=30, what='session done')
     ros.wait_for(lambda: len(resp.samples) == 3, what='records')
@@ -151,7 +151,7 @@ def test_unsettled_samples_are_marked_and_reported(ros, tmp_path):
 def test_operator_mode_waits_for_next_scene_service(ros, tmp_path):
     from std_srvs.srv import Trigger
     resp = Responder(ros)
-    col = _collector(ros, session_file=str(_session(tmp_path, 1, 1)), wait_for_operator=True)
+    col = _collector(ros, session=str(_session(tmp_path, 1, 1)), simulated=False)
     ros.wait_for(lambda: 'operator' in col.state, what='waiting for the operator')
     client = resp.node.create_client(Trigger, '/collector/next_scene')
     assert client.wait_for_service(timeout_sec=5)
@@ -184,9 +184,9 @@ def test_sigint_mid_session_vents(ros, tmp_path):
     resp = Responder(ros)
     proc = subprocess.Popen(
         [sys.executable, '-c', 'from softshape_ros.nodes.collector import main; main()',
-         '--ros-args', '-p', f'session_file:={_session(tmp_path, 1, 50)}', '-p', 'rate_hz:=5.0',
+         '--ros-args', '-p', f'session:={_session(tmp_path, 1, 50)}', '-p', 'rate_hz:=5.0',
          '-p', 'start_delay_s:=0.1', '-p', 'rest_delay_s:=0.05',
-         '-p', 'wait_for_frames:=false'],
+         '-p', 'wait_for_frames:=false', '-p', 'simulated:=true'],
         env=dict(os.environ), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         ros.wait_for(lambda: any(any(c) for c in resp.commands), timeout=60,
@@ -200,3 +200,16 @@ def test_sigint_mid_session_vents(ros, tmp_path):
     assert proc.returncode == 0, out
     ros.wait_for(lambda: resp.commands[-1] == [0.0] * 6, what='the vent command', timeout=5)
     assert len(resp.samples) < 50
+
+
+@pytest.mark.ros
+def test_bad_session_parameters_fail_clearly(ros, tmp_path):
+    from softshape_ros.nodes.collector import Collector
+    with pytest.raises(ValueError, match='disagree'):
+        Collector(parameter_overrides=[Parameter('session', value='a.yaml'),
+                                       Parameter('session_file', value='b.yaml')])
+    with pytest.raises(ValueError, match='cannot read session'):
+        Collector(parameter_overrides=[Parameter('session', value=str(tmp_path / 'no.yaml'))])
+    with pytest.raises(ValueError, match='needs the pressures_file'):
+        Collector(parameter_overrides=[Parameter('session', value=str(_session(tmp_path))),
+                                       Parameter('mode', value='list')])

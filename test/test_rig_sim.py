@@ -89,7 +89,7 @@ def test_collector_and_mock_hardware_two_scenes_five_actuations(ros, tmp_path):
 
     conf = Parameter('config_file', value=str(tmp_path / 'rig.yaml'))
     ros.add(MockHardware(parameter_overrides=[Parameter('tau_s', value=0.02), conf]))
-    params = {'session_file': str(session), 'actuations': 5, 'rate_hz': 3.0,
+    params = {'session': str(session), 'simulated': True, 'actuations': 5, 'rate_hz': 3.0,
               'settle_timeout_s': 1.5, 'settle_tolerance_pa': TOL_PA, 'seed': 11,
               'rest_delay_s': 0.3, 'max_fraction': 0.6}
     col = ros.add(Collector(parameter_overrides=[conf] + [Parameter(k, value=v)

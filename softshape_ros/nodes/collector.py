@@ -7,7 +7,7 @@ measured pressures are within ``settle_tolerance_pa`` of the command (or the tim
 is logged and marks the sample unsettled) and triggered. Before every trigger a JSON record
 on /rig/sample says what the trigger is, so the dataset builder never has to guess. On the
 physical rig it waits for the operator (``~/next_scene`` service) between scenes; it always
-ends venting. With no ``session_file`` the node waits idle.
+ends venting. With no ``session`` parameter the node waits idle.
 """
 
 from __future__ import annotations
@@ -107,7 +107,11 @@ class Collector(Node):
         self.cfg = declare_rig_config(self)
         par = self.declare_parameter
         col = self.cfg.collection
-        session_file = str(par('session_file', '').value)
+        session_file = str(par('session', '').value)
+        alias = str(par('session_file', '').value)      # the first name, kept working
+        if alias and session_file and alias != session_file:
+            raise ValueError(f'session {session_file!r} and session_file {alias!r} disagree')
+        session_file = session_file or alias
         mode = str(par('mode', 'random').value)
         pressures_file = str(par('pressures_file', '').value)
         seed = int(par('seed', 0).value)
@@ -120,7 +124,8 @@ class Collector(Node):
         self.settle_timeout_s = tout if tout >= 0 else col.settle_timeout_s
         self.rest_delay_s = float(par('rest_delay_s', 0.5).value)
         self.actuations_override = int(par('actuations', -1).value)
-        self.wait_for_operator = bool(par('wait_for_operator', False).value)
+        # the physical rig needs a person to place each object; the mock reads /rig/scene
+        self.wait_for_operator = not bool(par('simulated', True).value)
         self.start_delay_s = float(par('start_delay_s', 0.5).value)
         self.wait_for_frames = bool(par('wait_for_frames', True).value)
         self.frame_timeout_s = float(par('frame_timeout_s', 10.0).value)
@@ -163,7 +168,7 @@ class Collector(Node):
         self._frames: dict = {}        # trigger stamp_ns -> cameras that answered it
         self._operator_ready = threading.Event()
         self._stop = threading.Event()
-        self.state = 'idle: no session_file' if not self.scenes else 'starting'
+        self.state = 'idle: no session' if not self.scenes else 'starting'
         self.samples = 0
         self.unsettled = 0
         self.clamped = 0
@@ -175,7 +180,7 @@ class Collector(Node):
                                            daemon=True)
             self.worker.start()
         else:
-            self.get_logger().info('no session_file: idle (set session_file to a session YAML '
+            self.get_logger().info('no session parameter: idle (set session to a session YAML '
                                    'such as config/session_sim.yaml to collect)')
 
     # -- inputs ---------------------------------------------------------------------------
