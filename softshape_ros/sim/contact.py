@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import spence
 
-from softshape_ros.sim.lie import skew
+from softshape_ros.sim.lie import cross, skew
 from softshape_ros.sim.statics import LoadTerm
 
 DEFAULT_STIFFNESS_N_M = 2.0e4
@@ -70,6 +70,7 @@ class ContactModel:
                  smoothing: float = DEFAULT_SMOOTHING_M):
         self.obstacles = [o for o in obstacles if o is not None]
         self.k, self.delta = float(stiffness), float(smoothing)
+        self._last = []         # contact arc lengths of the previous call: warm starts
 
     def _sample_X(self, rod):
         mid = rod.offsets[rod.int_seg] + 0.5 * (rod.int_a + rod.int_b)
@@ -83,16 +84,16 @@ class ContactModel:
             R, p = g[0, :3, :3], g[0, :3, 3]
             xi = rod.strain(kin.q, [x])[0]
             tvec = R @ xi[3:]
-            d, n = obj.sdf(p[None])
-            H = obj.hessian(p[None])[0]
+            _, n, H = obj.sdf_hessian(p[None])
+            H = H[0]
             d1 = float(n[0] @ tvec)
-            d2 = float(tvec @ H @ tvec + n[0] @ (R @ np.cross(xi[:3], xi[3:])))
+            d2 = float(tvec @ H @ tvec + n[0] @ (R @ cross(xi[:3], xi[3:])))
             if d2 > 1e-12:
                 step = -d1 / d2
             else:
                 step = -np.sign(d1) * 0.25 * (hi - lo)
             xn = min(max(x + step, lo), hi)
-            if abs(xn - x) < 1e-14:
+            if abs(xn - x) < 1e-13:
                 x = xn
                 break
             x = xn
@@ -116,8 +117,13 @@ class ContactModel:
                 if gap[i] > _NEAR_M:
                     continue
                 lo, hi = Xs[i - 1], Xs[min(i + 1, n - 1)]
-                x = self._refine(rod, kin, obj, lo, hi, Xs[i])
+                x0 = Xs[i]
+                for xl, ol in self._last:
+                    if ol == oi and lo < xl < hi:
+                        x0 = xl
+                x = self._refine(rod, kin, obj, lo, hi, x0)
                 found.append((x, oi))
+        self._last = found
         return found
 
     def __call__(self, rod, kin):
@@ -138,7 +144,8 @@ class ContactModel:
         keep = []
         for j, (x, oi) in enumerate(cands):
             obj = self.obstacles[oi]
-            d, n = obj.sdf(p[j][None])
+            d, n, H = obj.sdf_hessian(p[j][None])
+            H = H[0]
             gap = float(d[0]) - rad[j]
             if gap > _CUTOFF * self.delta:
                 continue
@@ -147,14 +154,13 @@ class ContactModel:
             dlam = -self.k * float(_sigmoid(z))              # d lambda / d gap
             nn = n[0]
             f[j] = lam * nn
-            H = obj.hessian(p[j][None])[0]
             dfdp[j] = dlam * np.outer(nn, nn) + lam * H
             if x < rod.length - 1e-12:
                 # The contact point slides with q (gap minimum over X): the min-function's
                 # Hessian adds lambda * gXq^T gXq / gXX to the tangent.
                 Rj = g[j, :3, :3]
                 tv = Rj @ xi[j, 3:]
-                gxx = float(tv @ H @ tv + nn @ (Rj @ np.cross(xi[j, :3], xi[j, 3:])))
+                gxx = float(tv @ H @ tv + nn @ (Rj @ cross(xi[j, :3], xi[j, 3:])))
                 if gxx > 1e-9:
                     D = Rj @ J[j, 3:, :]
                     dt = Rj @ (-skew(xi[j, 3:]) @ J[j, :3, :] + phi[j, 3:, :])

@@ -23,6 +23,14 @@ def skew(v: np.ndarray) -> np.ndarray:
     return out
 
 
+def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Return a x b over the last axis (broadcasting; faster than np.cross for small arrays)."""
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
 def ad(x: np.ndarray) -> np.ndarray:
     """Return the 6x6 adjoint matrix(es) of twists ``x`` (..., 6): ``ad_x y = [x, y]``."""
     x = np.asarray(x, dtype=float)

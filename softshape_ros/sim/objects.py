@@ -34,11 +34,16 @@ class Obstacle:
 
     def hessian(self, p: np.ndarray, eps: float = 1e-6) -> np.ndarray:
         """Return the distance Hessian (P, 3, 3) by central differences of the gradient."""
+        return self.sdf_hessian(p, eps)[2]
+
+    def sdf_hessian(self, p: np.ndarray, eps: float = 1e-6):
+        """Return distance (P,), gradient (P, 3) and Hessian (P, 3, 3) in one evaluation."""
         p = np.atleast_2d(p)
-        steps = np.concatenate([np.eye(3), -np.eye(3)]) * eps          # (6, 3)
-        n = self.sdf((p[:, None, :] + steps[None]).reshape(-1, 3))[1].reshape(len(p), 6, 3)
-        H = np.swapaxes((n[:, :3] - n[:, 3:]) / (2 * eps), 1, 2)
-        return 0.5 * (H + np.swapaxes(H, 1, 2))
+        steps = np.concatenate([np.zeros((1, 3)), np.eye(3), -np.eye(3)]) * eps   # (7, 3)
+        d, n = self.sdf((p[:, None, :] + steps[None]).reshape(-1, 3))
+        d, n = d.reshape(len(p), 7), n.reshape(len(p), 7, 3)
+        H = np.swapaxes((n[:, 1:4] - n[:, 4:]) / (2 * eps), 1, 2)
+        return d[:, 0], n[:, 0], 0.5 * (H + np.swapaxes(H, 1, 2))
 
     def raycast(self, origin: np.ndarray, dirs: np.ndarray):
         """Return hit distance (P,) (inf = miss) and world normals (P, 3) for unit rays."""
@@ -176,10 +181,15 @@ class Ring(Obstacle):
         tt = np.maximum(-b[idx] - np.sqrt(disc[idx]), 0.0)
         tmax = -b[idx] + np.sqrt(disc[idx])
         dd = d[idx]
-        for _ in range(64):
-            pts = o + tt[:, None] * dd
+        live = np.arange(len(idx))
+        for _ in range(80):
+            pts = o + tt[live, None] * dd[live]
             dist, _ = self._sdf(pts)
-            tt = tt + dist
+            tt[live] += dist
+            keep = (dist > 1e-7) & (tt[live] <= tmax[live])
+            live = live[keep]
+            if len(live) == 0:
+                break
         pts = o + tt[:, None] * dd
         dist, nn = self._sdf(pts)
         ok = (np.abs(dist) < 1e-6) & (tt <= tmax)

@@ -66,13 +66,24 @@ def render_view(camera: PinholeCamera, centres: np.ndarray, radii: np.ndarray, o
         normal[i0:i1, j0:j1][win] = (hit - c) / r
         mat[i0:i1, j0:j1][win] = 1
     flat_dirs = dirs.reshape(-1, 3)
+    flat_depth = depth.reshape(-1)
+    flat_normal = normal.reshape(-1, 3)
+    flat_mat = mat.reshape(-1)
     for obj in obstacles:
-        t, n = obj.raycast(o, flat_dirs)
-        t, n = t.reshape(H, W), n.reshape(H, W, 3)
-        win = t < depth
-        depth[win] = t[win]
-        normal[win] = n[win]
-        mat[win] = 2
+        rb = obj.bounding_radius()
+        if np.isfinite(rb):
+            # Only rays that pass through the object's bounding sphere can hit it.
+            oc = obj.t - o
+            b = flat_dirs @ oc
+            sel = np.nonzero(b * b - (oc @ oc - rb * rb) > 0)[0]
+        else:
+            sel = np.arange(len(flat_dirs))
+        t, n = obj.raycast(o, flat_dirs[sel])
+        win = t < flat_depth[sel]
+        idx = sel[win]
+        flat_depth[idx] = t[win]
+        flat_normal[idx] = n[win]
+        flat_mat[idx] = 2
     light = -camera.R[:, 2] + np.array([0.0, 0.0, 0.6])
     light /= np.linalg.norm(light)
     img = np.empty((H, W, 3))

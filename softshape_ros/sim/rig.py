@@ -23,7 +23,8 @@ from softshape_ros.sim.render import render_view, to_uint8
 from softshape_ros.sim.rod import Rod, RodSpec
 from softshape_ros.sim.statics import Actuator, SolverError, Statics
 
-SPHERE_SPACING_M = 0.0008
+SPHERE_SPACING_M = 0.0015
+PENALTY_STAGES = (0.1, 1.0)
 
 
 @dataclass
@@ -80,6 +81,7 @@ class SimRig:
         self.obstacles = []
         self.contact = None
         self._q = None
+        self._q_free = None
         sample_n = int(np.ceil(self.rod.length / SPHERE_SPACING_M)) + 1
         self.sample_s = np.linspace(0.0, self.rod.length, sample_n)
 
@@ -93,6 +95,7 @@ class SimRig:
         self.contact = (ContactModel(self.obstacles, *self.contact_args)
                         if self.obstacles and self.contact_on else None)
         self._q = None
+        self._q_free = None
 
     def solve(self, pressures_pa) -> SimState:
         """Return the equilibrium for 6 chamber pressures (Pa; clamped to the limits)."""
@@ -100,14 +103,59 @@ class SimRig:
         if self.pressure_noise_pa > 0:
             p = np.clip(p + self.rng.normal(0.0, self.pressure_noise_pa, p.shape), 0.0,
                         self.limits)
-        try:
-            q, asm, it = self.statics.solve(p, q0=self._q, contact=self.contact)
-        except SolverError:
-            if self._q is None:
-                raise
-            q, asm, it = self.statics.solve(p, q0=None, contact=self.contact)
+        # The free shape first (cheap); it is the answer when it does not touch the object.
+        q, asm, it = self.statics.solve(p, q0=self._q_free)
+        self._q_free = q
+        if self.contact is not None:
+            check = self.statics.assemble(q, p, [], 1.0, self.contact)
+            if check.extra['contacts']:
+                q0 = self._touching_start(q)
+                try:
+                    q, asm, it2 = self._solve_contact(p, q0)
+                except SolverError:
+                    q, asm, it2 = self.statics.solve(p, q0=None, contact=self.contact)
+                it += it2
+            else:
+                asm = check
         self._q = q
         return self._state(q, p, asm, it)
+
+    def _solve_contact(self, p, q0):
+        """Solve with contact, stiffening the penalty in stages (soft first: smoother)."""
+        k_full = self.contact.k
+        its = 0
+        try:
+            for f in PENALTY_STAGES:
+                self.contact.k = k_full * f
+                q0, asm, it = self.statics.solve(p, q0=q0, contact=self.contact,
+                                                 tol=1e-6 if f < 1 else 1e-10)
+                its += it
+        finally:
+            self.contact.k = k_full
+        return q0, asm, its
+
+    def _touching_start(self, q_free):
+        """Return the shape on the way from the last one to ``q_free`` that just touches."""
+        q_prev = self._q if self._q is not None else np.zeros_like(q_free)
+        obj = self.obstacles[0]
+        rod = self.rod
+        X = self.sample_s[::3]
+        rad = rod.radii[rod.locate(X)[0]]
+
+        def gap(q):
+            pts = rod.positions(rod.forward(q), X)
+            return min(float((o.sdf(pts)[0] - rad).min()) for o in self.obstacles)
+
+        if gap(q_prev) < 0 or obj is None:
+            return q_prev
+        lo, hi = 0.0, 1.0
+        for _ in range(8):
+            mid = 0.5 * (lo + hi)
+            if gap(q_prev + mid * (q_free - q_prev)) > 0:
+                lo = mid
+            else:
+                hi = mid
+        return q_prev + lo * (q_free - q_prev)
 
     def _state(self, q, p, asm, it) -> SimState:
         rod = self.rod

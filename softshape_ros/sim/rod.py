@@ -87,6 +87,9 @@ class Rod:
         nm = spec.order + 1
         self.nmodes = nm
         self.dofs_per_seg = nm * len(self.comps)
+        self._comp_rows = np.repeat(self.comps, nm)
+        self._col_off = np.arange(nm * len(self.comps))
+        self._mode_idx = np.tile(np.arange(nm), len(self.comps))
         self.n = self.dofs_per_seg * self.nseg
         # Section stiffness diag(GJ, EI, EI, EA, GA, GA) and the generalised stiffness K
         # (Legendre modes are orthogonal: int_0^L P_i P_j dX = L / (2j + 1) delta_ij).
@@ -144,10 +147,9 @@ class Rod:
         P = np.polynomial.legendre.legvander(2.0 * x / self.lengths[seg] - 1.0,
                                              self.spec.order)
         out = np.zeros((len(x), 6, self.n))
-        rows = np.arange(len(x))
-        for ci, c in enumerate(self.comps):
-            for j in range(self.nmodes):
-                out[rows, c, seg * self.dofs_per_seg + ci * self.nmodes + j] = P[:, j]
+        rows = np.arange(len(x))[:, None]
+        out[rows, self._comp_rows[None, :], (seg * self.dofs_per_seg)[:, None]
+            + self._col_off[None, :]] = P[:, self._mode_idx]
         return out
 
     def locate(self, X) -> tuple:
