@@ -189,8 +189,9 @@ class Statics:
 
     def _geometric(self, kin: Kinematics, terms: list[LoadTerm], point_terms, quad):
         """
-        Return (Q, dQ/dq): point loads in quadrature form (those flagged in ``quad``), and
-        the geometric stiffness of all loads.
+        Return (Q, dQ/dq): point loads in quadrature form, and the geometric stiffness.
+
+        Q covers the loads flagged in ``quad``; dQ/dq all of them.
 
         The internal wrench at X from everything distal is smooth between load points, so
         each point load's own segment is integrated by a Gauss rule on [segment start, X_c]
