@@ -1,0 +1,117 @@
+"""
+``softshape train | evaluate | export | reproduce``: the visual forward model's tools.
+
+``train`` runs unchanged under ``torchrun --nproc_per_node N .venv/bin/softshape train ...``
+(DDP: gloo on CPU, NCCL on GPUs).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+
+
+def _train(args) -> int:
+    from softshape_ros.data import load_dataset
+    from softshape_ros.model.train import TrainConfig, train
+    ds = load_dataset(args.dataset)
+    rows = None if args.rows is None else range(min(args.rows, len(ds)))
+    cfg = TrainConfig(arch=args.arch, seed=args.seed, split=args.split,
+                      batch_size=args.batch_size, lr=args.lr, max_steps=args.max_steps,
+                      eval_every=args.eval_every, patience=args.patience,
+                      threads=args.threads)
+    res = train(ds, cfg, out=args.out, indices=rows, progress=not args.quiet)
+    summary = {'checkpoint': args.out, 'steps': res.steps,
+               'val_rmse_255': 255 * res.best_val_mse ** 0.5,
+               'copy_val_rmse_255': 255 * res.copy_val_mse ** 0.5}
+    if res.config['training']['world_size'] == 1 or _rank() == 0:
+        print(json.dumps(summary))
+    return 0
+
+
+def _rank() -> int:
+    import os
+    return int(os.environ.get('RANK', '0'))
+
+
+def _evaluate(args) -> int:
+    import numpy as np
+
+    from softshape_ros.data import load_dataset
+    from softshape_ros.model.checkpoint import read_config
+    from softshape_ros.model.data import split_indices
+    from softshape_ros.model.evaluate import evaluate
+    ds = load_dataset(args.dataset)
+    idx = None
+    if args.validation:
+        cfg = read_config(args.checkpoint)
+        t, rows = cfg['training'], np.arange(cfg['dataset']['rows_used'])
+        _, idx = split_indices(ds.scene, rows, t['split'], t['val_fraction'], t['seed'])
+    res = evaluate(args.checkpoint, ds, indices=idx, out_dir=args.out)
+    print(json.dumps(res, indent=2))
+    return 0
+
+
+def _export(args) -> int:
+    from softshape_ros.model.export import export_onnx
+    info = export_onnx(args.checkpoint, args.out)
+    print(json.dumps({k: info[k] for k in ('onnx', 'max_abs_diff', 'batch_checked')}))
+    return 0
+
+
+def _reproduce(args) -> int:
+    from softshape_ros.model.reproduce import ReproConfig, reproduce
+    sizes = [int(s) for s in args.sizes.split(',')]
+    cfg = ReproConfig(sizes=sizes, test_fraction=args.test_fraction, seed=args.seed,
+                      max_steps=args.max_steps, patience=args.patience,
+                      eval_every=args.eval_every, threads=args.threads)
+    table = reproduce(args.dataset, args.out, cfg, work=args.work, fig4c=not args.no_fig4c)
+    sys.stdout.write(table)
+    return 0
+
+
+def register(sub) -> None:
+    p = sub.add_parser('train', help='train a forward model on a dataset (DDP under torchrun)')
+    p.add_argument('--dataset', required=True, help='dataset folder')
+    p.add_argument('--out', required=True, help='checkpoint folder to write')
+    p.add_argument('--arch', choices=('paper', 'ours'), default='ours')
+    p.add_argument('--split', choices=('random', 'scene'), default='random',
+                   help='validation rows: random 20%% (paper) or whole held-out scenes')
+    p.add_argument('--seed', type=int, default=0)
+    p.add_argument('--rows', type=int, default=None, help='use only the first N rows')
+    p.add_argument('--batch-size', type=int, default=256)
+    p.add_argument('--lr', type=float, default=2e-3)
+    p.add_argument('--max-steps', type=int, default=1500)
+    p.add_argument('--eval-every', type=int, default=10, help='steps between validations')
+    p.add_argument('--patience', type=int, default=8,
+                   help='validations without improvement before stopping early')
+    p.add_argument('--threads', type=int, default=0, help='torch threads (0: default)')
+    p.add_argument('--quiet', action='store_true', help='no progress bar')
+    p.set_defaults(func=_train)
+
+    p = sub.add_parser('evaluate', help='metrics and prediction panels of a checkpoint')
+    p.add_argument('--checkpoint', required=True)
+    p.add_argument('--dataset', required=True)
+    p.add_argument('--validation', action='store_true',
+                   help="only the checkpoint's own validation rows of this dataset")
+    p.add_argument('--out', default=None, help='folder for metrics.json and panels.png')
+    p.set_defaults(func=_evaluate)
+
+    p = sub.add_parser('export', help='export a checkpoint to ONNX (checked within 1e-4)')
+    p.add_argument('--checkpoint', required=True)
+    p.add_argument('--out', required=True, help='.onnx file to write')
+    p.set_defaults(func=_export)
+
+    p = sub.add_parser('reproduce', help="the paper's RMSE-vs-size study, paper vs ours")
+    p.add_argument('--dataset', required=True, help='stereo dataset (mono uses its 1st view)')
+    p.add_argument('--out', default='benchmarks/reproduction', help='table + figures folder')
+    p.add_argument('--work', default=None, help='checkpoints folder (default: a temp dir)')
+    p.add_argument('--sizes', default='100,200,500,1000')
+    p.add_argument('--test-fraction', type=float, default=0.2)
+    p.add_argument('--seed', type=int, default=0)
+    p.add_argument('--max-steps', type=int, default=400)
+    p.add_argument('--eval-every', type=int, default=10)
+    p.add_argument('--patience', type=int, default=6)
+    p.add_argument('--threads', type=int, default=0)
+    p.add_argument('--no-fig4c', action='store_true', help='skip the object-distance check')
+    p.set_defaults(func=_reproduce)

@@ -1,0 +1,262 @@
+"""
+The paper's simulation study (III-B/C, Fig. 4 and 5), with our network beside the paper's.
+
+One stereo dataset; mono runs use its first view (``main``). A test set is held out once
+per split (random rows, or whole scenes) and never trained on; training sets of 100, 200,
+500, 1000 rows are nested draws from the rest, each split 80/20 into train/validation as in
+the paper. Every run's metrics are cached as JSON beside the table, so an interrupted
+reproduction resumes where it stopped.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import matplotlib
+import numpy as np
+from tqdm import tqdm
+
+from softshape_ros.data import Dataset, load_dataset
+from softshape_ros.model.data import split_indices
+from softshape_ros.model.evaluate import predict_rows, prediction_panels
+from softshape_ros.model.metrics import RobotSilhouette, evaluate_arrays
+from softshape_ros.model.predictor import Predictor
+from softshape_ros.model.train import TrainConfig, train
+
+matplotlib.use('Agg')
+import matplotlib.pyplot as plt  # noqa: E402
+
+ARCHS = ('paper', 'ours')
+VIEWS = ('mono', 'stereo')
+SPLITS = ('random', 'scene')
+
+
+@dataclass
+class ReproConfig:
+    """The study grid and the training budget of each run."""
+
+    sizes: list = field(default_factory=lambda: [100, 200, 500, 1000])
+    test_fraction: float = 0.2
+    seed: int = 0
+    max_steps: int = 400
+    eval_every: int = 10
+    patience: int = 6
+    threads: int = 0
+
+
+def select_views(ds: Dataset, n: int) -> Dataset:
+    """Keep the first ``n`` views of a dataset (mono = the main camera only)."""
+    meta = dict(ds.meta, views=list(ds.meta['views'])[:n])
+    return Dataset(path=ds.path, initial=ds.initial[:, :n], target=ds.target[:, :n],
+                   pressure=ds.pressure, scene=ds.scene, meta=meta)
+
+
+def plan(ds: Dataset, cfg: ReproConfig) -> dict:
+    """Per split: (test rows, nested training rows per size). Sizes above the pool fail."""
+    out = {}
+    for split in SPLITS:
+        pool, test = split_indices(ds.scene, np.arange(len(ds)), split, cfg.test_fraction,
+                                   cfg.seed)
+        order = np.random.default_rng(cfg.seed + 1).permutation(pool)
+        too_big = [s for s in cfg.sizes if s > len(order)]
+        if too_big:
+            raise ValueError(f'{ds.path}: {len(order)} rows left for training after the '
+                             f'{split} test split, sizes {too_big} need more '
+                             '(simulate more samples or pass --sizes)')
+        out[split] = (test, {s: np.sort(order[:s]) for s in cfg.sizes})
+    return out
+
+
+def _key(split, views, arch, size) -> str:
+    return f'{split}_{views}_{arch}_{size}'
+
+
+def _fit_and_score(ds, rows, test, tc, ckpt, sil, desc) -> dict:
+    t0 = time.perf_counter()
+    res = train(ds, tc, out=ckpt, indices=rows, desc=desc)
+    secs = time.perf_counter() - t0
+    pred = Predictor.from_checkpoint(ckpt)
+    p = predict_rows(pred, ds, test)
+    m = evaluate_arrays(np.asarray(ds.initial[test]), np.asarray(ds.target[test]), p, sil)
+    m.update(train_seconds=secs, steps=res.steps,
+             val_rmse=255 * res.best_val_mse ** 0.5)
+    return m
+
+
+def reproduce(dataset, out, cfg: ReproConfig | None = None, work=None,
+              fig4c: bool = True) -> str:
+    """Run (or resume) the whole grid; write table.md, results.json and figures to ``out``."""
+    cfg = cfg or ReproConfig()
+    full = load_dataset(dataset)
+    if len(full.views) < 2:
+        raise ValueError(f'{full.path}: reproduce needs a stereo dataset (mono = its 1st view)')
+    out = Path(out)
+    (out / 'runs').mkdir(parents=True, exist_ok=True)
+    work = Path(work or tempfile.mkdtemp(prefix='softshape_repro_'))
+    sets = {'mono': select_views(full, 1), 'stereo': full}
+    sils = {'stereo': RobotSilhouette.fit(np.asarray(full.initial))}
+    sils['mono'] = RobotSilhouette(sils['stereo'].threshold, sils['stereo'].base_rc[:1])
+    splits = plan(full, cfg)
+    grid = [(sp, v, a, s) for sp in SPLITS for s in cfg.sizes for v in VIEWS for a in ARCHS]
+    stamp = hashlib.sha256(json.dumps([dataclasses.asdict(cfg), str(full.path), len(full)])
+                           .encode()).hexdigest()[:12]
+    results = {}
+    bar = tqdm(grid, desc='reproduce', dynamic_ncols=True)
+    for split, views, arch, size in bar:
+        key = _key(split, views, arch, size)
+        cache = out / 'runs' / f'{key}.json'
+        if cache.exists():
+            cached = json.loads(cache.read_text())
+            if cached.get('stamp') == stamp:
+                results[key] = cached
+                continue
+        bar.set_postfix_str(key)
+        test, train_rows = splits[split]
+        tc = TrainConfig(arch=arch, seed=cfg.seed, split=split, max_steps=cfg.max_steps,
+                         eval_every=cfg.eval_every, patience=cfg.patience,
+                         threads=cfg.threads)
+        m = _fit_and_score(sets[views], train_rows[size], test, tc, work / key,
+                           sils[views], key)
+        m.update(stamp=stamp, split=split, views=views, arch=arch, size=size,
+                 test_rows=int(len(test)), checkpoint=str(work / key))
+        cache.write_text(json.dumps(m, indent=2))
+        results[key] = m
+    bar.close()
+    summary = {'dataset': str(full.path), 'dataset_count': len(full),
+               'provenance': full.meta.get('provenance'), 'config': dataclasses.asdict(cfg),
+               'runs': results}
+    (out / 'results.json').write_text(json.dumps(summary, indent=2))
+    table = write_table(results, cfg, out / 'table.md', full)
+    rmse_figure(results, cfg, out / 'rmse_vs_size.png')
+    biggest = max(cfg.sizes)
+    for views in VIEWS:
+        test = splits['scene'][0]
+        pick = test[np.linspace(0, len(test) - 1, 4).astype(int)]
+        panels_figure(sets[views], pick, work, biggest, views, out / f'panels_{views}.png')
+    if fig4c:
+        try:
+            distance_check(work / _key('random', 'stereo', 'ours', biggest), full,
+                           out / 'fig4c_distance.png')
+        except ImportError as exc:   # no simulator in this install
+            print(f'reproduce: skipping the object-distance check: {exc}')
+    return table
+
+
+def write_table(results, cfg, path, ds) -> str:
+    """Markdown: RMSE (0-255) per split/size/views/arch, with the copy baseline and gains."""
+    lines = [f'Dataset: `{Path(ds.path).name}` ({len(ds)} samples, '
+             f'{len(np.unique(ds.scene))} scenes). Test RMSE on the 0-255 scale, '
+             'lower is better; "gain" = how much lower `ours` is than `paper`.', '']
+    for split in SPLITS:
+        lines += [f'**Split: {split}** '
+                  + ('(held-out random rows)' if split == 'random'
+                     else '(held-out scenes: unseen object placements)'), '',
+                  '| size | views | copy | paper | ours | gain | ours RMSE changed | '
+                  'ours yellow % | ours IoU | ours tip err px | ours train s |',
+                  '|---|---|---|---|---|---|---|---|---|---|---|']
+        for size in cfg.sizes:
+            for views in VIEWS:
+                p = results.get(_key(split, views, 'paper', size))
+                o = results.get(_key(split, views, 'ours', size))
+                if not (p and o):
+                    lines.append(f'| {size} | {views} | missing run | | | | | | | | |')
+                    continue
+                om = o['model']
+                gain = 100 * (1 - om['rmse'] / p['model']['rmse'])
+                lines.append(
+                    f'| {size} | {views} | {o["copy"]["rmse"]:.2f} | {p["model"]["rmse"]:.2f} '
+                    f'| {om["rmse"]:.2f} | {gain:.0f}% | {om["rmse_changed"]:.1f} '
+                    f'| {100 * om["yellow_fraction"]:.2f} | {om["silhouette_iou"]:.3f} '
+                    f'| {om["tip_error_px"]:.2f} | {o["train_seconds"]:.0f} |')
+        lines.append('')
+    text = '\n'.join(lines) + '\n'
+    Path(path).write_text(text)
+    return text
+
+
+def rmse_figure(results, cfg, path) -> None:
+    """Fig. 5: test RMSE against training-set size, one panel per split."""
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4), sharey=True)
+    for ax, split in zip(axes, SPLITS):
+        for views, ls in zip(VIEWS, ('--', '-')):
+            for arch, colour in zip(ARCHS, ('tab:orange', 'tab:blue')):
+                pts = [(s, results[_key(split, views, arch, s)]['model']['rmse'])
+                       for s in cfg.sizes if _key(split, views, arch, s) in results]
+                if pts:
+                    ax.plot(*zip(*pts), ls, marker='o', color=colour, label=f'{arch} {views}')
+        copies = [(s, results[_key(split, 'stereo', 'ours', s)]['copy']['rmse'])
+                  for s in cfg.sizes if _key(split, 'stereo', 'ours', s) in results]
+        if copies:
+            ax.plot(*zip(*copies), ':', color='gray', label='copy initial image')
+        ax.set_xscale('log')
+        ax.set_xticks(cfg.sizes)
+        ax.set_xticklabels([str(s) for s in cfg.sizes])
+        ax.set_xlabel('training samples')
+        ax.set_title(f'split: {split}')
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel('test RMSE (0-255)')
+    axes[1].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def panels_figure(ds, rows, work, size, views, path) -> None:
+    """Fig. 4(a)/(b): held-out-scene predictions of paper and ours at the largest size."""
+    initial, target = np.asarray(ds.initial[rows]), np.asarray(ds.target[rows])
+    preds, labels = [], []
+    for arch in ARCHS:
+        ck = work / _key('scene', views, arch, size)
+        if not (ck / 'config.json').exists():
+            return
+        preds.append(predict_rows(Predictor.from_checkpoint(ck), ds, rows))
+        labels += [f'{arch} #{r}' for r in rows]
+    n = len(rows)
+    prediction_panels(np.concatenate([initial] * 2), np.concatenate([target] * 2),
+                      np.concatenate(preds), list(ds.views), path,
+                      title=f'{views}, {size} training samples, unseen scenes '
+                            f'(top {n} rows: paper, bottom {n}: ours)', row_labels=labels)
+
+
+def distance_check(checkpoint, ds, path) -> None:
+    """Fig. 4(c): one actuation, a cylinder at growing distance; simulated vs predicted."""
+    from softshape_ros.config import load_rig_config
+    from softshape_ros.scene import Scene
+    from softshape_ros.sim.rig import SimRig
+
+    pred = Predictor.from_checkpoint(checkpoint)
+    rig = SimRig(load_rig_config())
+    gray = pred.channels == 1
+    lim = np.asarray(pred.max_pressure_pa)
+    best, act = -np.inf, None
+    for k in range(3):          # the chamber pair that swings the tip furthest towards +x
+        p = np.zeros(6)
+        p[k], p[k + 3] = 0.8 * lim[k], 0.8 * lim[k + 3]
+        rig.set_scene(None)
+        x = rig.solve(p).tip_pose[0, 3]
+        if x > best:
+            best, act = x, p
+    initial, target = [], []
+    distances = [0.016, 0.020, 0.024, 0.028, 0.034]
+    for i, d in enumerate(distances):
+        rig.set_scene(Scene(id=1000 + i, object='cylinder', position_m=(d, 0.0, 0.02),
+                            dims={'radius_m': 0.006, 'height_m': 0.05}))
+        imgs = []
+        for p in (np.zeros(6), act):
+            r = rig.render_inputs(rig.solve(p), size=pred.image_size, gray=gray,
+                                  cameras=pred.views)
+            imgs.append(np.stack([r[v] for v in pred.views]))
+        initial.append(imgs[0])
+        target.append(imgs[1])
+    initial, target = np.stack(initial), np.stack(target)
+    predicted = pred.predict_batch(initial, [act] * len(distances))
+    prediction_panels(initial, target, predicted, pred.views, path,
+                      title=f'same actuation {np.round(act / 1000).astype(int).tolist()} kPa, '
+                            'cylinder moved away (simulator vs ours)',
+                      row_labels=[f'x = {d * 1000:.0f} mm' for d in distances])

@@ -1,0 +1,170 @@
+"""Forward model: shapes, training that learns, checkpoints that reload exactly or fail clearly."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from softshape_ros.model import (CheckpointError, Predictor, build_network, load_checkpoint,
+                                 save_checkpoint)
+from softshape_ros.model.checkpoint import CONFIG, WEIGHTS
+from softshape_ros.model.data import split_indices
+from softshape_ros.model.synthetic import MAX_PA, make_dataset
+from softshape_ros.model.train import TrainConfig, train
+
+
+@pytest.mark.parametrize('arch', ['paper', 'ours'])
+@pytest.mark.parametrize('views,channels', [(1, 1), (2, 1), (1, 3), (2, 3)])
+def test_network_maps_input_shape_to_output_shape(arch, views, channels):
+    net = build_network(arch, views, channels)
+    x = torch.rand(3, views * channels, 64, 64)
+    y = net(x, torch.rand(3, 6))
+    assert y.shape == x.shape
+    assert torch.isfinite(y).all()
+
+
+def test_unknown_architecture_is_refused():
+    with pytest.raises(ValueError, match='unknown architecture'):
+        build_network('resnet', 1, 1)
+
+
+def test_scene_split_holds_out_whole_scenes():
+    scene = np.repeat(np.arange(10), 7)
+    kept, held = split_indices(scene, np.arange(70), 'scene', 0.2, seed=3)
+    assert len(kept) + len(held) == 70
+    assert not set(scene[kept]) & set(scene[held])
+    assert len(set(scene[held])) == 2
+    kept2, held2 = split_indices(scene, np.arange(70), 'random', 0.2, seed=3)
+    assert len(held2) == 14 and not set(kept2) & set(held2)
+
+
+@pytest.fixture(scope='module')
+def small_set(tmp_path_factory):
+    return make_dataset(tmp_path_factory.mktemp('ds') / 'syn', 160, 8, views=('main',), seed=1)
+
+
+@pytest.fixture(scope='module')
+def trained(small_set, tmp_path_factory):
+    ckpt = tmp_path_factory.mktemp('ckpt') / 'ours'
+    cfg = TrainConfig(arch='ours', batch_size=16, lr=3e-3, max_steps=200, eval_every=20,
+                      patience=100, seed=0, threads=1)
+    return train(small_set, cfg, out=ckpt, progress=False), ckpt
+
+
+def test_training_beats_copy_baseline_well(trained):
+    res, _ = trained
+    assert res.steps == 200
+    first = res.history[0]['val_mse']
+    # A few hundred steps: validation error far below copying the initial image.
+    assert res.best_val_mse < 0.4 * res.copy_val_mse, (res.best_val_mse, res.copy_val_mse)
+    assert res.best_val_mse < first
+
+
+def test_checkpoint_reloads_bit_identically(trained, small_set):
+    res, ckpt = trained
+    model, cfg = load_checkpoint(ckpt)
+    for k, v in res.model.state_dict().items():
+        assert torch.equal(model.state_dict()[k], v), k
+    assert cfg['views'] == ['main'] and cfg['channels'] == 1
+    assert cfg['dataset']['provenance']['generator'] == 'softshape_ros.model.synthetic'
+    pred = Predictor.from_checkpoint(ckpt / CONFIG)      # either file of the folder works
+    a = pred.predict_batch(np.asarray(small_set.initial[:5]), small_set.pressure[:5])
+    b = Predictor.from_checkpoint(ckpt).predict_batch(np.asarray(small_set.initial[:5]),
+                                                      small_set.pressure[:5])
+    assert a.dtype == np.uint8 and a.shape == (5, 1, 1, 64, 64)
+    assert np.array_equal(a, b)
+
+
+def test_predictor_api_checks_inputs(trained, small_set):
+    _, ckpt = trained
+    pred = Predictor.from_checkpoint(ckpt)
+    assert (pred.views, pred.channels, pred.image_size) == (['main'], 1, 64)
+    assert np.allclose(pred.max_pressure_pa, MAX_PA)
+    init = np.asarray(small_set.initial[0])
+    out = pred.predict(init, small_set.pressure[0])
+    assert out.shape == init.shape and out.dtype == np.uint8
+    assert np.array_equal(out, pred.predict_batch(init[None], [small_set.pressure[0]])[0])
+    # Above the limit is clamped to it, exactly as the pressure bridge does.
+    over = pred.predict(init, [2 * MAX_PA] * 6)
+    assert np.array_equal(over, pred.predict(init, [MAX_PA] * 6))
+    for bad in ([0.0] * 5, [float('nan')] * 6, [-1.0] + [0.0] * 5):
+        with pytest.raises(ValueError):
+            pred.predict(init, bad)
+    with pytest.raises(ValueError, match='uint8'):
+        pred.predict(init.astype(np.float32), [0.0] * 6)
+    with pytest.raises(ValueError, match='shape'):
+        pred.predict(np.zeros((2, 1, 64, 64), np.uint8), [0.0] * 6)
+    with pytest.raises(ValueError, match='pressure vectors'):
+        pred.predict_batch(init[None].repeat(2, 0), [[0.0] * 6])
+
+
+def test_training_is_seeded_and_reproducible(small_set):
+    cfg = TrainConfig(arch='paper', batch_size=16, max_steps=6, eval_every=3, seed=5, threads=1)
+    a = train(small_set, cfg, indices=range(60), progress=False).model.state_dict()
+    b = train(small_set, cfg, indices=range(60), progress=False).model.state_dict()
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    cfg.seed = 6
+    c = train(small_set, cfg, indices=range(60), progress=False).model.state_dict()
+    assert not all(torch.equal(a[k], c[k]) for k in a)
+
+
+def _copy_ckpt(src, dst):
+    dst.mkdir()
+    for f in (CONFIG, WEIGHTS):
+        (dst / f).write_bytes((src / f).read_bytes())
+    return dst
+
+
+def test_tampered_or_truncated_checkpoint_fails_clearly(trained, tmp_path):
+    _, ckpt = trained
+    # Flipped byte inside the weights.
+    d = _copy_ckpt(ckpt, tmp_path / 'flip')
+    raw = bytearray((d / WEIGHTS).read_bytes())
+    raw[-7] ^= 0x55
+    (d / WEIGHTS).write_bytes(bytes(raw))
+    with pytest.raises(CheckpointError, match=WEIGHTS):
+        Predictor.from_checkpoint(d)
+    # Truncated weights.
+    d = _copy_ckpt(ckpt, tmp_path / 'trunc')
+    (d / WEIGHTS).write_bytes((ckpt / WEIGHTS).read_bytes()[:1000])
+    with pytest.raises(CheckpointError, match='truncated'):
+        load_checkpoint(d)
+    # Weights replaced and the hash updated to match: the tensors no longer fit the arch.
+    d = _copy_ckpt(ckpt, tmp_path / 'swap')
+    cfg = json.loads((d / CONFIG).read_text())
+    cfg['arch'] = 'paper'
+    (d / CONFIG).write_text(json.dumps(cfg))
+    with pytest.raises(CheckpointError, match='do not match the paper network'):
+        load_checkpoint(d)
+    # Config garbage, config missing, weights missing, folder missing.
+    d = _copy_ckpt(ckpt, tmp_path / 'garbage')
+    (d / CONFIG).write_text('{"format": ')
+    with pytest.raises(CheckpointError, match=CONFIG):
+        load_checkpoint(d)
+    (d / CONFIG).unlink()
+    with pytest.raises(CheckpointError, match='config missing'):
+        load_checkpoint(d)
+    d = _copy_ckpt(ckpt, tmp_path / 'noweights')
+    (d / WEIGHTS).unlink()
+    with pytest.raises(CheckpointError, match='weights missing'):
+        load_checkpoint(d)
+    with pytest.raises(CheckpointError):
+        Predictor.from_checkpoint(tmp_path / 'nowhere')
+    assert issubclass(CheckpointError, ValueError)
+
+
+def test_checkpoint_never_unpickles(tmp_path):
+    import pickle
+
+    class Boom:
+        def __reduce__(self):
+            return (exec, ('raise SystemExit("unpickled!")',))
+
+    d = tmp_path / 'evil'
+    net = build_network('paper', 1, 1)
+    save_checkpoint(d, net, {'arch': 'paper', 'arch_params': {}, 'views': ['main'],
+                             'channels': 1, 'image_size': 64, 'max_pressure_pa': [1.0] * 6})
+    (d / WEIGHTS).write_bytes(pickle.dumps(Boom()))
+    with pytest.raises(CheckpointError):
+        load_checkpoint(d)

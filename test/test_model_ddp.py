@@ -1,0 +1,57 @@
+"""DDP: the training code under torchrun with 2 CPU processes (gloo) ends with equal weights."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import torch
+from safetensors.torch import load_file
+
+from softshape_ros.model import build_network, load_checkpoint
+from softshape_ros.model.synthetic import make_dataset
+from softshape_ros.model.train import TrainConfig, train
+
+TORCHRUN = Path(sys.executable).with_name('torchrun')
+
+SCRIPT = '''
+import os, sys
+from safetensors.torch import save_file
+from softshape_ros.model.train import TrainConfig, train
+cfg = TrainConfig(arch='ours', batch_size=16, max_steps=12, eval_every=4, threads=1, seed=2)
+res = train(sys.argv[1], cfg, out=sys.argv[2], progress=False)
+sd = {k: v.contiguous() for k, v in res.model.state_dict().items()}
+save_file(sd, os.path.join(sys.argv[3], 'rank%s.safetensors' % os.environ['RANK']))
+'''
+
+
+def test_ddp_two_processes_end_with_identical_weights(tmp_path):
+    ds = make_dataset(tmp_path / 'ds', 60, 4, views=('main', 'side'), seed=4)
+    script = tmp_path / 'ddp_train.py'
+    script.write_text(SCRIPT)
+    env = dict(os.environ, OMP_NUM_THREADS='1')
+    proc = subprocess.run(
+        [str(TORCHRUN), '--standalone', '--nnodes', '1', '--nproc_per_node', '2',
+         str(script), str(ds.path), str(tmp_path / 'ckpt'), str(tmp_path)],
+        env=env, capture_output=True, text=True, timeout=240)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    r0 = load_file(str(tmp_path / 'rank0.safetensors'))
+    r1 = load_file(str(tmp_path / 'rank1.safetensors'))
+    assert r0.keys() == r1.keys()
+    assert all(torch.equal(r0[k], r1[k]) for k in r0)
+    model, cfg = load_checkpoint(tmp_path / 'ckpt')
+    assert cfg['training']['world_size'] == 2
+    assert all(torch.equal(model.state_dict()[k], r0[k]) for k in r0)
+    # Splitting each global batch over two ranks is the same optimisation as one process
+    # taking the whole batch (up to float summation order).
+    single = train(ds, TrainConfig(arch='ours', batch_size=16, max_steps=12, eval_every=4,
+                                   threads=1, seed=2), progress=False)
+    sd = single.model.state_dict()
+    worst = max(float((sd[k] - r0[k]).abs().max()) for k in r0)
+    assert worst < 1e-3, worst
+    assert json.loads((tmp_path / 'ckpt' / 'config.json').read_text())['training']['steps'] == 12
+    # ... and it did train: the weights moved from their seeded start.
+    torch.manual_seed(2)
+    start = build_network('ours', 2, 1).state_dict()
+    assert max(float((start[k] - r0[k]).abs().max()) for k in r0) > 1e-3
