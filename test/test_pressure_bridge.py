@@ -252,3 +252,28 @@ def test_faults_never_let_anything_but_commanded_values_through(ros, vdue):
         assert a.setpoints_pa in commanded, f'{a} was never commanded'
         assert all(0 <= v <= lim for v, lim in zip(a.setpoints_pa, LIMITS))
     assert node.link.counters['connects'] >= 3
+
+
+def test_starts_without_a_due_reports_error_and_connects_when_plugged_in(ros, tmp_path):
+    from rclpy.parameter import Parameter
+
+    from softshape_ros.nodes.pressure_bridge import PressureBridge
+    link = tmp_path / 'ttyDUE'
+    node = ros.add(PressureBridge(parameter_overrides=[
+        Parameter('port', value=str(link)), Parameter('diagnostics_period_s', value=0.1)]))
+    c = Client(ros)
+    ros.wait_for(lambda: c.last_diag() is not None and c.last_diag().level == b'\x02', 10,
+                 what='diagnostics ERROR without a Due')
+    assert 'cannot open' in c.last_diag().message
+    c.wait_graph()
+    c.command([1000] * 6)
+    ros.wait_for(lambda: node.counts['not_applied'] == 1, 5, what='command refused')
+    with VirtualDue(CFG.max_pressures_pa, link=link, seed=2) as vd:
+        ros.wait_for(lambda: node.link.connected, 10, what='connect after plug-in')
+        ros.wait_for(lambda: c.last_diag().level == b'\x00', 5, what='diagnostics OK')
+        time.sleep(0.2)
+        assert [a.reason for a in vd.applied()] == ['vent']   # the old command never arrives
+        c.command([2000] * 6)
+        ros.wait_for(lambda: vd.applied()[-1].setpoints_pa == (2000,) * 6, 5, what='fresh')
+        node.on_shutdown()
+        assert vd.applied()[-1].reason == 'vent'
