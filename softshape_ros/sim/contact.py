@@ -5,7 +5,9 @@ Model (the paper's): each object pushes on the robot with concentrated forces. F
 local minimum along the backbone of the gap ``gamma(X) = phi(p(X)) - r`` (phi: the object's
 signed distance) the contact point is refined to the true minimiser ``X_c`` by Newton on
 ``d phi(p(X)) / dX = 0`` (not snapped to a node), and a smooth penalty force
-``f = k delta softplus(-gamma / delta) grad phi`` acts there along the surface normal.
+``f = k pen (1 + pen / p0) grad phi``, ``pen = delta softplus(-gamma / delta)`` (a smooth
+penetration), acts there along the surface normal; it stiffens with depth so the robot
+stays within a fraction of a millimetre of the surface even when pressed hard.
 The normal passes through the backbone, so the force is applied at ``p(X_c)`` with no
 moment. Its Jacobian ``df/dp = lambda' n n^T + lambda H`` goes into the Newton tangent.
 """
@@ -22,6 +24,7 @@ from softshape_ros.sim.statics import LoadTerm
 
 DEFAULT_STIFFNESS_N_M = 2.0e4
 DEFAULT_SMOOTHING_M = 2.0e-5
+STIFFENING_DEPTH_M = 2.0e-4     # p0: the penalty doubles its stiffness at 0.2 mm
 _NEAR_M = 2e-3          # refine minima of sampled gaps below this (samples are ~2 mm apart)
 _CUTOFF = 30.0          # gaps beyond 30 smoothing lengths carry no force (< 1e-13 k delta)
 
@@ -150,8 +153,9 @@ class ContactModel:
             if gap > _CUTOFF * self.delta:
                 continue
             z = -gap / self.delta
-            lam = self.k * self.delta * float(_softplus(z))
-            dlam = -self.k * float(_sigmoid(z))              # d lambda / d gap
+            pen = self.delta * float(_softplus(z))
+            lam = self.k * pen * (1.0 + pen / STIFFENING_DEPTH_M)
+            dlam = -self.k * float(_sigmoid(z)) * (1.0 + 2.0 * pen / STIFFENING_DEPTH_M)
             nn = n[0]
             f[j] = lam * nn
             dfdp[j] = dlam * np.outer(nn, nn) + lam * H
@@ -167,7 +171,9 @@ class ContactModel:
                     gxq = (H @ tv) @ D + nn @ dt
                     extra_k += lam * np.outer(gxq, gxq) / gxx
             keep.append(j)
-            info['energy'] += float(penalty_energy(gap, self.k, self.delta))
+            # Potential of the stiffening part taken unsmoothed (it only serves as a merit).
+            info['energy'] += float(penalty_energy(gap, self.k, self.delta)
+                                    + self.k * max(0.0, -gap) ** 3 / (3 * STIFFENING_DEPTH_M))
             info['contacts'].append(Contact(float(x), p[j].copy(), p[j] - rad[j] * nn, nn.copy(),
                                             f[j].copy(), gap, oi))
             info['max_penetration_m'] = max(info['max_penetration_m'], -gap)

@@ -24,7 +24,7 @@ from softshape_ros.sim.rod import Rod, RodSpec
 from softshape_ros.sim.statics import Actuator, SolverError, Statics
 
 SPHERE_SPACING_M = 0.0015
-PENALTY_STAGES = (0.1, 1.0)
+PENALTY_STAGES = (1.0,)
 
 
 @dataclass

@@ -25,6 +25,7 @@ from softshape_ros.sim.rod import Kinematics, Rod
 _EX = np.array([1.0, 0.0, 0.0])
 TRUST_START_M = 0.008     # first step with an object in the scene moves the backbone <= 4 mm
 TRUST_MAX_M = 0.05
+TRUST_MIN_M = 5e-4
 ENERGY_MERIT_TOL = 1e-5   # below this relative residual the merit is the residual norm
 STALL_TOL = 1e-8          # relative residual accepted when round-off stops further descent
 
@@ -379,15 +380,18 @@ class Statics:
             if rn <= tol * asm.scale + 1e-15:
                 return True, q, asm, it - 1
             H = 0.5 * (asm.tangent + asm.tangent.T)
-            mu = 0.0 if mu < 1e-8 else mu * 0.1
+            # Plain Newton where the tangent is positive definite; otherwise the smallest
+            # diag(K) shift (from a tenth of the last one) that makes it so.
+            shift, mu_next = 0.0, max(mu * 0.1, 1e-4)
             for _ in range(30):
                 try:
-                    L = np.linalg.cholesky(H + mu * np.diag(kd))
+                    L = np.linalg.cholesky(H + shift * np.diag(kd))
                     break
                 except np.linalg.LinAlgError:
-                    mu = max(mu * 10.0, 1e-4)
+                    shift, mu_next = mu_next, mu_next * 10.0
             else:
                 return False, q, asm, it
+            mu = shift
             dq = -np.linalg.solve(L.T, np.linalg.solve(L, r))
             big = float(np.abs(dq).max())
             if not np.isfinite(big):
@@ -417,7 +421,9 @@ class Statics:
                     use_energy = (asm.energy is not None and trial.energy is not None
                                   and rn > ENERGY_MERIT_TOL * asm.scale)
                     if not ok and use_energy:
-                        ok = trial.energy <= asm.energy + 1e-4 * alpha * slope
+                        eps = 1e-12 * max(asm.energy_scale, trial.energy_scale)
+                        ok = (trial.energy <= asm.energy + 1e-4 * alpha * slope
+                              or (trial.energy <= asm.energy + eps and wt < w0))
                     elif not ok:
                         ok = wt < (1.0 - 1e-4 * alpha) * w0
                     if ok:
@@ -429,7 +435,8 @@ class Statics:
                 ok = rn <= STALL_TOL * asm.scale + 1e-15
                 return ok, q, asm, it
             if np.isfinite(radius):
-                radius = min(2.0 * radius, TRUST_MAX_M) if alpha == 1.0 else alpha * mv
+                radius = (min(4.0 * radius, TRUST_MAX_M) if alpha == 1.0
+                          else max(alpha * mv, TRUST_MIN_M))
             q, asm = q + alpha * dq, trial
         r = asm.residual
         ok = float(np.abs(r).max()) <= tol * asm.scale + 1e-15
