@@ -39,7 +39,7 @@ def test_sim_solve_overrides_tendons_loads_shear_and_object(capsys):
     assert shear['dof'] == 2 * 4 * 3
     loaded = run_json(capsys, ['sim-solve', '--tip-force', '0.1', '0', '0'])
     assert loaded['tip_position_m'][0] > 0.001
-    obj = json.dumps({'id': 0, 'object': 'sphere', 'position_m': [0.0, -0.03, 0.02],
+    obj = json.dumps({'id': 0, 'object': 'sphere', 'position_m': [0.008, -0.03, 0.03],
                       'dims': {'radius_m': 0.008}})
     touched = run_json(capsys, ['sim-solve', '--pressures', '1.5e5', '0', '0', '1.5e5', '0',
                                 '0', '--object', obj])

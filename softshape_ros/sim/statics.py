@@ -27,7 +27,7 @@ TRUST_START_M = 0.008     # first step with an object in the scene moves the bac
 TRUST_MAX_M = 0.05
 TRUST_MIN_M = 5e-4
 ENERGY_MERIT_TOL = 1e-5   # below this relative residual the merit is the residual norm
-STALL_TOL = 1e-8          # relative residual accepted when round-off stops further descent
+STALL_TOL = 1e-7          # relative residual accepted when round-off stops further descent
 
 
 class SolverError(RuntimeError):
