@@ -74,3 +74,10 @@ def ros(rclpy_session):
     r = Ros()
     yield r
     r.close()
+
+
+@pytest.fixture(scope='session')
+def trained_checkpoint(tmp_path_factory):
+    """Train a stereo gray ``ours`` model (briefly, for real) on simulated data."""
+    from inference_fixtures import make_trained_checkpoint
+    return make_trained_checkpoint(tmp_path_factory.mktemp('trained'))

@@ -40,9 +40,12 @@ def setup_py_entry_points() -> dict:
 ENTRY_POINTS = setup_py_entry_points()
 NODES = sorted(n for n, target in ENTRY_POINTS.items() if '.nodes.' in target)
 
-# Arguments a node needs to start on a machine with no rig (e.g. a model file).
-# Filled in by the node's own issue; by default a node must start with no arguments.
-NODE_ARGS = {}
+# Arguments a node needs to start on a machine with no rig, from the test's fixtures
+# (e.g. a model file); by default a node must start with no arguments.
+NODE_ARGS = {
+    'inference': lambda request: ['--ros-args', '-p',
+                                  f'model:={request.getfixturevalue("trained_checkpoint")}'],
+}
 
 
 @pytest.fixture(scope='session')
@@ -109,9 +112,10 @@ def test_installed_cli_reads_installed_config(colcon_install, tmp_path):
 @pytest.mark.ros
 @pytest.mark.parametrize('executable', NODES)
 def test_node_starts_in_graph_and_exits_zero_on_sigint(executable, colcon_install, tmp_path,
-                                                       rclpy_session):
+                                                       rclpy_session, request):
     exe = ros2_run_lookup(colcon_install, executable)
-    proc = subprocess.Popen([str(exe)] + NODE_ARGS.get(executable, []), cwd=tmp_path,
+    args = NODE_ARGS[executable](request) if executable in NODE_ARGS else []
+    proc = subprocess.Popen([str(exe)] + args, cwd=tmp_path,
                             env=install_env(colcon_install), stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True)
     probe = rclpy_session.create_node(f'probe_{executable}')

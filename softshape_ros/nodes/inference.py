@@ -1,0 +1,209 @@
+"""
+Inference node: predicted interaction images for each pressure command or query.
+
+Initial images come from the camera topics (the rest images of each ``/rig/scene``, or on
+demand via ``~/capture_initial``); each ``/rig/pressure/command`` and ``/softshape/query``
+yields ``/softshape/predicted/{view}/image_raw`` (plus an outline overlay). The model runs
+on a worker thread that always serves the latest request, so a slow model never blocks
+subscriptions and requests never queue without bound.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from collections import deque
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.node import Node
+from sensor_msgs.msg import Image
+from std_msgs.msg import Float64MultiArray, String
+from std_srvs.srv import Trigger
+
+from softshape_ros.model.serving import (InferenceCore, LatestSlot, PredictionError, overlay,
+                                         to_hwc)
+from softshape_ros.nodes.camera_trigger import IMAGE_QOS
+from softshape_ros.nodes.common import (ERROR, LATCHED_QOS, OK, RELIABLE_QOS, SENSOR_QOS, WARN,
+                                        declare_rig_config, diagnostic_status, image_to_numpy,
+                                        main_wrapper, numpy_to_image, publish_diagnostics,
+                                        stamp_to_ns)
+
+
+class InferenceNode(Node):
+    """Thin adapter: parameters in, :class:`InferenceCore` call, images out."""
+
+    def __init__(self, **kwargs):
+        super().__init__('inference', **kwargs)
+        self.cfg = declare_rig_config(self)
+        model_path = self.declare_parameter('model', '').value
+        threads = int(self.declare_parameter('threads', 1).value)
+        self.publish_overlay = bool(self.declare_parameter('overlay', True).value)
+        # Camera images: reliable like camera_trigger/mock_hardware publish them (a best-effort
+        # subscription would silently lose rest images under load); false for best-effort cameras.
+        image_qos = IMAGE_QOS if self.declare_parameter('reliable_images', True).value \
+            else SENSOR_QOS
+        if not model_path:
+            raise ValueError('parameter "model" is empty: give a checkpoint '
+                             '(ros2 run softshape_ros inference --ros-args -p model:=PATH)')
+        import torch
+        torch.set_num_threads(max(1, threads))
+        from softshape_ros.model import Predictor
+        self.core = InferenceCore(Predictor.from_checkpoint(model_path), self.cfg, model_path)
+        self.get_logger().info(f'model {model_path}: views {self.core.views}, '
+                               f'{"gray" if self.core.gray else "RGB"} {self.core.size}px')
+        t = self.cfg.topics
+        self.pub_pred = {v: self.create_publisher(Image, t.camera('predicted_image', v), IMAGE_QOS)
+                         for v in self.core.views}
+        self.pub_overlay = {v: self.create_publisher(Image, t.camera('predicted_overlay', v),
+                                                     IMAGE_QOS) for v in self.core.views}
+        self.pub_diag = self.create_publisher(DiagnosticArray, t.diagnostics, RELIABLE_QOS)
+        self.latest_frame: dict[str, np.ndarray] = {}
+        self.rest_stamps: set[int] = set()
+        self.seen_samples = False
+        self.awaiting_rest = False
+        for v in self.core.views:
+            self.create_subscription(Image, t.camera('camera_image', v),
+                                     lambda msg, v=v: self.on_image(v, msg), image_qos)
+        self.create_subscription(String, t.scene, self.on_scene, LATCHED_QOS)
+        self.create_subscription(String, t.sample, self.on_sample, RELIABLE_QOS)
+        self.create_subscription(Float64MultiArray, t.pressure_command,
+                                 lambda m: self.on_request(m, 'command'), RELIABLE_QOS)
+        self.create_subscription(Float64MultiArray, t.query,
+                                 lambda m: self.on_request(m, 'query'), RELIABLE_QOS)
+        self.create_service(Trigger, '~/capture_initial', self.on_capture_initial)
+        self.counts = {'requests': 0, 'published': 0, 'rejected': 0}
+        self.last_error = ''
+        self.latency_ms: deque = deque(maxlen=500)
+        self.slot = LatestSlot()
+        self.worker = threading.Thread(target=self.serve, name='inference-worker', daemon=True)
+        self.running = True
+        self.worker.start()
+        self.create_timer(1.0, self.report)
+
+    # -- inputs ---------------------------------------------------------------------------
+    def on_scene(self, msg: String) -> None:
+        try:
+            scene = json.loads(msg.data)
+        except json.JSONDecodeError as exc:
+            self.get_logger().error(f'/rig/scene is not JSON ({exc}); keeping initial images')
+            return
+        self.core.clear_initial()
+        self.awaiting_rest = True
+        self.get_logger().info(f'scene {scene.get("id")}: waiting for its rest images')
+
+    def on_sample(self, msg: String) -> None:
+        try:
+            sample = json.loads(msg.data)
+            if sample.get('kind') == 'rest':
+                self.rest_stamps.add(int(sample['stamp_ns']))
+            self.seen_samples = True
+        except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
+            self.get_logger().warn(f'ignoring malformed /rig/sample: {exc}')
+
+    def on_image(self, view: str, msg: Image) -> None:
+        try:
+            frame = image_to_numpy(msg)
+        except ValueError as exc:
+            self.get_logger().warn(f'{view}: dropping bad image: {exc}')
+            return
+        self.latest_frame[view] = frame
+        if not self.awaiting_rest:
+            return
+        stamp = stamp_to_ns(msg.header.stamp)
+        if self.seen_samples and stamp not in self.rest_stamps:
+            return
+        try:
+            self.core.set_initial(view, frame)
+        except ValueError as exc:
+            self.get_logger().error(f'{view}: cannot use rest image: {exc}')
+            return
+        if self.core.ready:
+            self.awaiting_rest = False
+            self.get_logger().info('initial images captured')
+
+    def on_capture_initial(self, request, response):
+        missing = [v for v in self.core.views if v not in self.latest_frame]
+        if missing:
+            response.success, response.message = False, f'no camera frame yet from {missing}'
+            return response
+        try:
+            for v in self.core.views:
+                self.core.set_initial(v, self.latest_frame[v])
+        except ValueError as exc:
+            response.success, response.message = False, str(exc)
+            return response
+        self.awaiting_rest = False
+        response.success, response.message = True, f'initial images set from {self.core.views}'
+        return response
+
+    def on_request(self, msg: Float64MultiArray, source: str) -> None:
+        self.counts['requests'] += 1
+        stamp = self.get_clock().now()
+        try:
+            pressures = self.core.check(msg.data)
+            if not self.core.ready:
+                self.core.initial()  # raises with the reason
+        except PredictionError as exc:
+            self.reject(f'{source}: {exc}')
+            return
+        self.slot.put((pressures, stamp, time.perf_counter()))
+
+    def reject(self, reason: str) -> None:
+        self.counts['rejected'] += 1
+        self.last_error = reason
+        self.get_logger().warn(f'not predicting: {reason}', throttle_duration_sec=1.0)
+
+    # -- worker ---------------------------------------------------------------------------
+    def serve(self) -> None:
+        while self.running:
+            item = self.slot.get(timeout=0.2)
+            if item is None:
+                continue
+            pressures, stamp, t0 = item
+            try:
+                images = self.core.predict(pressures)
+            except PredictionError as exc:
+                self.reject(str(exc))
+                continue
+            except Exception as exc:  # keep serving; say what failed
+                self.reject(f'model failed: {type(exc).__name__}: {exc}')
+                continue
+            msg_stamp = stamp.to_msg()
+            for v, img in images.items():
+                frame_id = self.cfg.cameras[v].frame_id
+                self.pub_pred[v].publish(numpy_to_image(to_hwc(img), msg_stamp, frame_id))
+                if self.publish_overlay and v in self.latest_frame:
+                    frame = self.latest_frame[v]
+                    cam = self.cfg.cameras[v]
+                    crop = cam.crop_px
+                    if frame.shape[1] != cam.width or frame.shape[0] != cam.height:
+                        from softshape_ros.vision.preprocess import scale_crop
+                        crop = scale_crop(crop, (cam.width, cam.height),
+                                          (frame.shape[1], frame.shape[0]))
+                    self.pub_overlay[v].publish(
+                        numpy_to_image(overlay(frame, img, crop), msg_stamp, frame_id))
+            self.counts['published'] += 1
+            self.latency_ms.append((time.perf_counter() - t0) * 1e3)
+
+    def report(self) -> None:
+        lat = np.asarray(self.latency_ms) if self.latency_ms else np.zeros(1)
+        level, message = OK, 'predicting'
+        if not self.core.ready:
+            level, message = WARN, 'waiting for initial images'
+        if not self.worker.is_alive():
+            level, message = ERROR, 'inference worker died'
+        values = dict(self.counts, superseded=self.slot.superseded,
+                      latency_ms_median=f'{np.median(lat):.2f}',
+                      latency_ms_p99=f'{np.percentile(lat, 99):.2f}', last_error=self.last_error)
+        publish_diagnostics(self, self.pub_diag, [
+            diagnostic_status('softshape: inference', 'model', level, message, values)])
+
+    def on_shutdown(self) -> None:
+        self.running = False
+        self.slot.close()
+        self.worker.join(timeout=2.0)
+
+
+main = main_wrapper(InferenceNode)

@@ -1,0 +1,98 @@
+"""
+Contact: pressed into each object the robot stays outside, forces are normal and balance it.
+
+The full 1000-random-actuations-per-object convergence count is a benchmark/CLI report
+(``python -m benchmarks sim``); here a smaller seeded sample per object keeps the suite short.
+"""
+
+import math
+
+import numpy as np
+import pytest
+
+from softshape_ros.config import load_rig_config
+from softshape_ros.scene import Scene
+from softshape_ros.sim import SimRig
+from softshape_ros.sim.objects import obstacle_from_scene
+
+CFG = load_rig_config()
+R = 0.0125
+AZ = math.radians(30.0)          # chambers 3 and 6 (240 deg) bend the robot this way
+B = np.array([math.cos(AZ), math.sin(AZ), 0.0])
+PUSH = [0.0, 0.0, 1.5e5, 0.0, 0.0, 1.5e5]
+
+
+def placed(kind):
+    """Return a scene with ``kind`` 2-3 mm from the robot in its bending direction."""
+    if kind == 'cylinder':
+        c = B * (R + 0.002 + 0.008)
+        return Scene(id=0, object='cylinder', position_m=(c[0], c[1], 0.02),
+                     dims={'radius_m': 0.008, 'height_m': 0.05})
+    if kind == 'ring':
+        c = B * (R + 0.002 + 0.012 + 0.003)
+        return Scene(id=1, object='ring', position_m=(c[0], c[1], 0.026),
+                     rpy_rad=(math.pi / 2, 0.0, AZ + math.pi),
+                     dims={'major_radius_m': 0.012, 'minor_radius_m': 0.003})
+    if kind == 'prism':
+        c = B * (R + 0.003 + 0.006 + 0.025 * math.tan(0.2))
+        return Scene(id=2, object='prism', position_m=(c[0], c[1], 0.02), rpy_rad=(0, 0, AZ),
+                     dims={'width_m': 0.012, 'depth_m': 0.012, 'height_m': 0.05,
+                           'skew_rad': 0.2})
+    if kind == 'plane':
+        c = B * (R + 0.004)
+        return Scene(id=3, object='plane', position_m=(c[0], c[1], 0.0),
+                     rpy_rad=(0.0, -math.pi / 2, AZ))
+    c = B * (R + 0.002 + 0.008) + np.array([0.0, 0.004, 0.0])
+    return Scene(id=4, object='sphere', position_m=(c[0], c[1], 0.022),
+                 dims={'radius_m': 0.008})
+
+
+KINDS = ['cylinder', 'ring', 'prism', 'plane', 'sphere']
+
+
+@pytest.mark.parametrize('kind', KINDS)
+def test_pressed_robot_stays_outside_with_normal_balancing_forces(kind):
+    rig = SimRig(CFG)
+    scene = placed(kind)
+    rig.set_scene(scene)
+    free = SimRig(CFG).solve(PUSH)
+    st = rig.solve(PUSH)
+    obj = obstacle_from_scene(scene)
+    # Really pressed: without the object the robot would go through it.
+    assert (obj.sdf(free.backbone_m)[0] - R).min() < -0.002
+    touching = [c for c in st.contacts if c.gap_m < 0]
+    assert touching, 'no contact'
+    # The whole tube stays outside (not only at the contact points): < 0.5 mm.
+    assert (obj.sdf(st.backbone_m)[0] - st.radii_m).min() > -5e-4
+    assert st.max_penetration_m < 5e-4
+    rod, statics = rig.rod, rig.statics
+    Q = np.zeros(rod.n)
+    for c in st.contacts:
+        # Normal to the object's surface at the contact, pointing out of the object.
+        _, n = obj.sdf(c.backbone_m[None])
+        f = np.asarray(c.force_n)
+        assert np.linalg.norm(np.cross(f, n[0])) <= 1e-9 * max(np.linalg.norm(f), 1e-12)
+        assert f @ n[0] >= 0
+        # Located where the tube surface meets the object: the point lies on the object's
+        # surface up to the penetration, and the backbone is one radius behind it.
+        assert abs(obj.sdf(np.asarray(c.point_m)[None])[0][0]) <= abs(c.gap_m) + 1e-9
+        g, J = rod.at(rod.forward(st.q), [c.s_m])
+        Q += J[0, 3:, :].T @ (g[0, :3, :3].T @ f)
+    # Balance: elastic - actuation - gravity (residual without contact) = contact forces.
+    free_res = statics.assemble(st.q, st.pressures_pa, []).residual
+    assert np.abs(free_res - Q).max() < 1e-6 * np.abs(free_res).max()
+    assert np.abs(free_res).max() > 1e-5        # the contact really carries load
+
+
+@pytest.mark.parametrize('kind', ['cylinder', 'ring', 'prism'])
+def test_random_actuations_converge_near_objects(kind):
+    rig = SimRig(CFG)
+    rig.set_scene(placed(kind))
+    rng = np.random.default_rng(11)
+    limits = np.array(CFG.max_pressures_pa)
+    touched = 0
+    for _ in range(12):
+        st = rig.solve(rng.uniform(0, 1, 6) * limits)      # SolverError would fail the test
+        touched += any(c.gap_m < 0 for c in st.contacts)
+        assert st.max_penetration_m < 5e-4 and st.residual < 1e-9
+    assert touched >= 1
