@@ -85,3 +85,24 @@ def test_cli_train_evaluate_export(tmp_path, capsys):
         'image_size': 64, 'max_pressure_pa': [1e5] * 6})
     assert cli(['evaluate', '--checkpoint', str(ck2), '--dataset', str(mono.path)]) == 2
     assert 'expects' in capsys.readouterr().err
+
+
+def test_reproduce_writes_table_and_figures_and_resumes(tmp_path):
+    from softshape_ros.model.reproduce import ReproConfig, reproduce
+    ds = make_dataset(tmp_path / 'ds', 80, 10, views=('main', 'side'), seed=3)
+    cfg = ReproConfig(sizes=[20, 40], max_steps=3, eval_every=3, patience=1, threads=1)
+    out = tmp_path / 'repro'
+    table = reproduce(ds.path, out, cfg, work=tmp_path / 'work', fig4c=False,
+                      splits=['random'])
+    assert table.count('missing run') == 4           # the scene split was left to another run
+    assert len(list((out / 'runs').glob('random_*.json'))) == 8
+    table = reproduce(ds.path, out, cfg, work=tmp_path / 'work', fig4c=False)
+    assert 'missing run' not in table and '| 40 | stereo |' in table
+    for f in ('table.md', 'results.json', 'rmse_vs_size.png', 'panels_mono.png',
+              'panels_stereo.png'):
+        assert (out / f).stat().st_size > 100, f
+    res = json.loads((out / 'results.json').read_text())['runs']
+    assert len(res) == 16 and res['scene_stereo_ours_40']['test_rows'] > 0
+    # Sizes beyond what the split leaves for training are refused, not silently shrunk.
+    with pytest.raises(ValueError, match='need more'):
+        reproduce(ds.path, out, ReproConfig(sizes=[500]), fig4c=False)

@@ -65,7 +65,8 @@ def _reproduce(args) -> int:
     cfg = ReproConfig(sizes=sizes, test_fraction=args.test_fraction, seed=args.seed,
                       max_steps=args.max_steps, patience=args.patience,
                       eval_every=args.eval_every, threads=args.threads)
-    table = reproduce(args.dataset, args.out, cfg, work=args.work, fig4c=not args.no_fig4c)
+    table = reproduce(args.dataset, args.out, cfg, work=args.work, fig4c=not args.no_fig4c,
+                      splits=args.splits.split(','))
     sys.stdout.write(table)
     return 0
 
@@ -109,9 +110,11 @@ def register(sub) -> None:
     p.add_argument('--sizes', default='100,200,500,1000')
     p.add_argument('--test-fraction', type=float, default=0.2)
     p.add_argument('--seed', type=int, default=0)
-    p.add_argument('--max-steps', type=int, default=400)
+    p.add_argument('--max-steps', type=int, default=150)
     p.add_argument('--eval-every', type=int, default=10)
-    p.add_argument('--patience', type=int, default=6)
+    p.add_argument('--patience', type=int, default=5)
     p.add_argument('--threads', type=int, default=0)
+    p.add_argument('--splits', default='random,scene',
+                   help='train only these splits here (the table uses all cached runs)')
     p.add_argument('--no-fig4c', action='store_true', help='skip the object-distance check')
     p.set_defaults(func=_reproduce)

@@ -20,7 +20,7 @@ class PaperNet(nn.Module):
     Section II-B, Fig. 2: pressures broadcast to 64x64 planes, concatenated to the images.
 
     Encoder of strided conv + ReLU down to a 4x4 latent, decoder of transposed conv + ReLU
-    back to 64x64, then a linear conv as the regression output.
+    back up, the last transposed conv (linear) being the regression output at 64x64.
     """
 
     def __init__(self, image_channels: int, widths=(16, 32, 64, 128)):
@@ -30,12 +30,13 @@ class PaperNet(nn.Module):
             enc += [nn.Conv2d(c, w, 4, 2, 1), nn.ReLU()]
             c = w
         dec = []
-        for w in list(reversed(widths))[1:] + [widths[0]]:
+        for w in list(reversed(widths))[1:]:
             dec += [nn.ConvTranspose2d(c, w, 4, 2, 1), nn.ReLU()]
             c = w
         self.encoder = nn.Sequential(*enc)
         self.decoder = nn.Sequential(*dec)
-        self.head = nn.Conv2d(c, image_channels, 3, 1, 1)
+        # The regression output: a linear transposed conv back to 64x64 images.
+        self.head = nn.ConvTranspose2d(c, image_channels, 4, 2, 1)
 
     def forward(self, image: torch.Tensor, pressure: torch.Tensor) -> torch.Tensor:
         b, _, h, w = image.shape
