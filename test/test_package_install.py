@@ -144,3 +144,39 @@ def test_every_node_module_is_an_entry_point():
     modules = sorted(p.stem for p in (ROOT / PKG / 'nodes').glob('*.py')
                      if not p.name.startswith('_') and p.stem != 'common')
     assert modules == NODES
+
+
+def launch_nodes(path: Path):
+    """(exec, name, [params-file templates], {param: value}) for each <node> of an XML launch."""
+    import xml.etree.ElementTree as ET
+    root = ET.parse(path).getroot()
+    assert root.tag == 'launch', path
+    for node in root.iter('node'):
+        files = [p.get('from') for p in node.findall('param') if p.get('from')]
+        values = {p.get('name'): p.get('value') for p in node.findall('param') if p.get('name')}
+        yield node.get('pkg'), node.get('exec'), node.get('name'), files, values
+
+
+LAUNCH_FILES = sorted((ROOT / 'launch').glob('*.launch.xml'))
+
+
+@pytest.mark.parametrize('launch', LAUNCH_FILES, ids=lambda p: p.name)
+def test_launch_file_names_only_installed_executables_and_parameter_files(launch, colcon_install):
+    import yaml
+    share = colcon_install / PKG / 'share' / PKG
+    assert (share / 'launch' / launch.name).is_file(), f'{launch.name} is not installed'
+    nodes = list(launch_nodes(launch))
+    assert nodes, f'{launch.name} starts no node'
+    for pkg, exe, name, files, values in nodes:
+        assert pkg == PKG
+        ros2_run_lookup(colcon_install, exe)
+        assert files, f'{launch.name}: {name} has no parameter file'
+        declared = set()
+        for f in files:
+            path = Path(f.replace('$(find-pkg-share softshape_ros)', str(share)))
+            assert path.is_file(), f'{launch.name}: {name}: {path} is not installed'
+            (params,) = yaml.safe_load(path.read_text()).values()
+            declared |= set(params['ros__parameters'])
+        unknown = set(values) - declared
+        assert not unknown, (f'{launch.name}: {name} sets {sorted(unknown)}, which its '
+                             f'parameter file does not declare')
