@@ -44,6 +44,10 @@ def test_two_camera_processes_answer_100_triggers_with_matching_stamps(ros, tmp_
                                             stamp_to_ns)
     from softshape_ros.vision.patterns import decode_index, write_video
 
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+    # a deep reader queue: a loaded test process must not overwrite unread frames
+    deep = QoSProfile(depth=300, reliability=ReliabilityPolicy.RELIABLE,
+                      history=HistoryPolicy.KEEP_LAST)
     cfg = load_rig_config()
     t = cfg.topics
     fps = 10.0
@@ -57,8 +61,7 @@ def test_two_camera_processes_answer_100_triggers_with_matching_stamps(ros, tmp_
 
     def on_image(c, m):
         with lock:
-            got[c].setdefault(stamp_to_ns(m.header.stamp), []).append(
-                decode_index(image_to_numpy(m)))
+            got[c].setdefault(stamp_to_ns(m.header.stamp), []).append(m)
 
     def on_time(c, m):
         with lock:
@@ -71,9 +74,9 @@ def test_two_camera_processes_answer_100_triggers_with_matching_stamps(ros, tmp_
 
     for c in ('main', 'side'):
         probe.create_subscription(Image, t.camera('camera_image', c),
-                                  lambda m, c=c: on_image(c, m), RELIABLE_QOS)
+                                  lambda m, c=c: on_image(c, m), deep)
         probe.create_subscription(TimeReference, t.camera('capture_time', c),
-                                  lambda m, c=c: on_time(c, m), RELIABLE_QOS)
+                                  lambda m, c=c: on_time(c, m), deep)
     probe.create_subscription(DiagnosticArray, t.diagnostics, on_diag, RELIABLE_QOS)
 
     procs = [start_camera(c, video, fps) for c in ('main', 'side')]
@@ -90,8 +93,13 @@ def test_two_camera_processes_answer_100_triggers_with_matching_stamps(ros, tmp_
             pub.publish(Header(stamp=ns_to_stamp(ns), frame_id=f'trigger {i}'))
             sent.append(ns)
             time.sleep(0.05)
-        ros.wait_for(lambda: all(len(cap[c]) >= N_TRIGGERS and len(got[c]) >= N_TRIGGERS
-                                 for c in cap), timeout=20, what='100 frames per camera')
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline and not all(
+                len(cap[c]) >= N_TRIGGERS and len(got[c]) >= N_TRIGGERS for c in cap):
+            time.sleep(0.05)
+        counts = {c: (len(cap[c]), len(got[c])) for c in cap}
+        assert all(n == (N_TRIGGERS, N_TRIGGERS) for n in counts.values()), (
+            f'(capture times, images) per camera after 100 triggers: {counts}')
         ros.wait_for(lambda: all(diags.get(f'camera_trigger: {c}', {}).get('frames')
                                  == str(N_TRIGGERS) for c in ('main', 'side')),
                      timeout=10, what='diagnostics with the final counts')
@@ -108,7 +116,8 @@ def test_two_camera_processes_answer_100_triggers_with_matching_stamps(ros, tmp_
         # the frame each camera published is the one playing at its own capture time
         for c in ('main', 'side'):
             for s in sent:
-                assert got[c][s][0] == int(cap[c][s] * fps // 1_000_000_000) % 12
+                index = decode_index(image_to_numpy(got[c][s][0]))
+                assert index == int(cap[c][s] * fps // 1_000_000_000) % 12
         d = diags['camera_trigger: main']
     assert "'n': 100" in d['pair_skew_ms']            # the node paired every frame with side's
     assert int(d['pairs_over_bound']) == sum(sk > 10_000_000 for sk in skews)

@@ -37,6 +37,11 @@ IMAGE_QOS = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE,
                        history=HistoryPolicy.KEEP_LAST)
 
 
+#: Peer capture times: a deep reader queue so a busy moment does not lose pairings.
+PEER_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                      history=HistoryPolicy.KEEP_LAST)
+
+
 def camera_info_msg(cal: Calibration, stamp, frame_id: str) -> CameraInfo:
     """Build a CameraInfo from a calibration (shared with mock_hardware)."""
     msg = CameraInfo()
@@ -110,7 +115,7 @@ class CameraTrigger(Node):
             if other != self.camera:
                 self.create_subscription(
                     TimeReference, topics.camera('capture_time', other),
-                    lambda m, o=other: self._on_peer_time(o, m), RELIABLE_QOS)
+                    lambda m, o=other: self._on_peer_time(o, m), PEER_QOS)
 
         self.latency_capture = RollingStats()
         self.latency_publish = RollingStats()

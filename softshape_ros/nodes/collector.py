@@ -331,6 +331,7 @@ class Collector(Node):
         S = len(self.scenes)
         for k, scene in enumerate(self.scenes, 1):
             n = scene.actuations if self.actuations_override < 0 else self.actuations_override
+            self._operator_ready.clear()     # before the state says we wait: no lost call
             self.state = f'scene {k}/{S}: rest'
             self.pub_scene.publish(String(data=scene.to_json()))
             sent = time.time_ns()
@@ -340,7 +341,6 @@ class Collector(Node):
                 log.info(f'scene {k}/{S} (id {scene.id}): place the {scene.object} '
                          f'"{scene.label}" at {list(scene.position_m)} m, then call '
                          f'{self.get_fully_qualified_name()}/next_scene')
-                self._operator_ready.clear()
                 while not self._operator_ready.is_set():
                     self._sleep(0.05)
                 sent = time.time_ns()
