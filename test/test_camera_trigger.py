@@ -184,3 +184,21 @@ def test_free_run_publishes_at_the_camera_rate_stamped_with_capture_time(ros, tm
     for m, s in zip(msgs, stamps):
         assert times[s] == s                   # free-run: the stamp is the capture time
         assert decode_index(image_to_numpy(m)) == int(s * 20.0 // 1_000_000_000) % 12
+
+
+def test_pairs_over_the_skew_bound_are_flagged(ros, tmp_path):
+    from softshape_ros.vision.patterns import write_video
+    video = str(write_video(tmp_path / 'c.avi', 12, fps=10.0))
+    probe = Probe(ros)
+    main = _camera(ros, source=video, max_capture_skew_s=0.0)   # any real skew is too much
+    side = _camera(ros, source=video, camera_name='side')
+    _wait_matched(ros, probe, main)
+    ros.wait_for(lambda: side.pub_time.get_subscription_count() >= 1      # main listens
+                 and probe.trigger_pub.get_subscription_count() >= 2, what='side matched')
+    for _ in range(5):
+        probe.trigger()
+        time.sleep(0.05)
+    ros.wait_for(lambda: main.skew.stats.count == 5, what='five pairs')
+    assert main.skew.flagged == 5 and side.skew.flagged == 0    # side keeps the 10 ms default
+    ros.wait_for(lambda: probe.last_level() == 1, what='diagnostics WARN on main')
+    assert 'capture skew over 0 ms' in probe.diags[-1].message
