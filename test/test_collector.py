@@ -50,7 +50,7 @@ def test_random_plan_is_seeded_uniform_within_limits():
 class Responder:
     """A bridge stand-in: first-order regulators at 100 Hz, optionally stuck at a fraction."""
 
-    def __init__(self, ros, gain=1.0):
+    def __init__(self, ros, gain=1.0, reverse=False):
         from sensor_msgs.msg import JointState
         from std_msgs.msg import Float64MultiArray, Header, String
 
@@ -72,7 +72,10 @@ class Responder:
 
         def tick():
             p = self.reg.step(0.01)
-            js = JointState(name=cfg.chamber_names, effort=[float(v) for v in p])
+            names, eff = list(cfg.chamber_names), [float(v) for v in p]
+            if reverse:                       # another chamber order on the wire
+                names, eff = names[::-1], eff[::-1]
+            js = JointState(name=names, effort=eff)
             js.header.stamp = self.node.get_clock().now().to_msg()
             pub.publish(js)
 
@@ -213,3 +216,11 @@ def test_bad_session_parameters_fail_clearly(ros, tmp_path):
     with pytest.raises(ValueError, match='needs the pressures_file'):
         Collector(parameter_overrides=[Parameter('session', value=str(_session(tmp_path))),
                                        Parameter('mode', value='list')])
+
+
+@pytest.mark.ros
+def test_measured_pressures_are_matched_by_chamber_name(ros, tmp_path):
+    Responder(ros, reverse=True)
+    col = _collector(ros, session=str(_session(tmp_path, 1, 2)), settle_timeout_s=0.5)
+    ros.wait_for(col.done.is_set, timeout=30, what='session done')
+    assert col.unsettled == 0 and col.samples == 3       # reordered by name, so it settles

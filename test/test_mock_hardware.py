@@ -120,3 +120,23 @@ def test_scene_and_trigger_give_images_and_bad_scene_is_ignored(ros):
     diff = img.astype(int) - clean.astype(int)
     assert img.shape == clean.shape and 2.0 < diff.std() < 6.0   # the noise, nothing else
     assert abs(diff.mean()) < 1.0
+
+
+def test_solver_error_gives_no_images_and_diagnostics_error(ros):
+    import time
+
+    from softshape_ros.nodes.common import ns_to_stamp
+    from softshape_ros.sim import SolverError
+    probe = Probe(ros)
+    mock = _mock(ros)
+
+    def fail(pressures):
+        raise SolverError('did not converge (injected)')
+    mock.rig.snap = fail                      # the simulator failing, as it can at extremes
+    ros.wait_for(lambda: probe.trig.get_subscription_count(), what='discovery')
+    probe.trig.publish(probe.H(stamp=ns_to_stamp(time.time_ns())))
+    ros.wait_for(lambda: mock.solver_errors == 1, what='the solver error')
+    ros.wait_for(lambda: probe.diags.get('mock_hardware: cameras', (0,))[0] == 2,
+                 what='diagnostics ERROR', timeout=5)
+    assert 'injected' in probe.diags['mock_hardware: cameras'][1]
+    assert probe.images == [] and mock.frames == 0
