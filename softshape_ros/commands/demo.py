@@ -1,0 +1,29 @@
+"""``softshape demo``: the whole pipeline on the simulated rig (what ``make demo`` runs)."""
+
+from __future__ import annotations
+
+from softshape_ros.demo.pipeline import DemoSettings
+
+
+def _run(args) -> int:
+    from softshape_ros.demo.pipeline import main_args
+    return main_args(args)
+
+
+def register(sub) -> None:
+    d = DemoSettings()
+    p = sub.add_parser('demo', help='record on the simulated rig, build a dataset, train, '
+                                    'evaluate, predict live; writes <out>/report.md')
+    p.add_argument('--out', default=d.out, help='output folder (default: %(default)s)')
+    p.add_argument('--scenes', type=int, default=d.scenes, help='object placements recorded')
+    p.add_argument('--actuations', type=int, default=d.actuations, help='samples per scene')
+    p.add_argument('--rate-hz', type=float, default=d.rate_hz, help='actuation rate (paper: 2)')
+    p.add_argument('--max-steps', type=int, default=d.max_steps, help='training steps at most')
+    p.add_argument('--threads', type=int, default=d.threads, help='torch threads')
+    p.add_argument('--live-scenes', type=int, default=d.live_scenes,
+                   help='unseen placements in the live stage')
+    p.add_argument('--live-commands', type=int, default=d.live_commands,
+                   help='commands per live placement')
+    p.add_argument('--seed', type=int, default=d.seed)
+    p.add_argument('--fresh', action='store_true', help='redo every stage')
+    p.set_defaults(func=_run)

@@ -1,0 +1,277 @@
+"""
+The whole pipeline on the simulated rig: record -> dataset -> train -> evaluate -> live -> report.
+
+Each stage is what a user would run: the rig nodes as separate processes (mock_hardware,
+recorder, collector; later mock_hardware + inference), and the ``softshape`` tools
+(build-dataset, train, evaluate). A stage whose outputs exist for the same settings is
+reused, so a second ``make demo`` only redoes what changed.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from softshape_ros.config import load_rig_config
+from softshape_ros.processes import NodeProcess, which_softshape
+
+STAGES = ('record', 'dataset', 'train', 'evaluate', 'live')
+
+
+@dataclass
+class DemoSettings:
+    """Everything that shapes the demo's outputs (a stage is redone when its part changes)."""
+
+    out: str = 'demo_out'
+    scenes: int = 10
+    actuations: int = 30
+    rate_hz: float = 2.0
+    max_steps: int = 1500
+    threads: int = 2
+    live_scenes: int = 2
+    live_commands: int = 8
+    seed: int = 0
+
+    def stage_key(self, stage: str) -> dict:
+        keys = {'record': ('scenes', 'actuations', 'rate_hz', 'seed'),
+                'dataset': (), 'train': ('max_steps', 'seed'), 'evaluate': (),
+                'live': ('live_scenes', 'live_commands', 'seed')}
+        upto = STAGES[:STAGES.index(stage) + 1]
+        return {k: getattr(self, k) for s in upto for k in keys[s]}
+
+
+def banner(text: str) -> None:
+    print(f'\n=== {text} ===', flush=True)
+
+
+class Stage:
+    """A stage's output folder plus a marker saying which settings produced it."""
+
+    def __init__(self, settings: DemoSettings, name: str, fresh: bool):
+        self.name, self.settings = name, settings
+        self.root = Path(settings.out)
+        self.marker = self.root / f'.{name}.done.json'
+        self.key = settings.stage_key(name)
+        self.fresh = fresh
+
+    def reusable(self) -> bool:
+        if self.fresh or not self.marker.is_file():
+            return False
+        try:
+            return json.loads(self.marker.read_text()).get('key') == self.key
+        except (OSError, json.JSONDecodeError):
+            return False
+
+    def result(self) -> dict:
+        return json.loads(self.marker.read_text())['result']
+
+    def done(self, result: dict) -> dict:
+        self.marker.write_text(json.dumps({'key': self.key, 'result': result}, indent=2))
+        return result
+
+
+def run_tool(args: list[str], log: Path) -> str:
+    """Run a ``softshape`` subcommand; its progress bars show; return its stdout."""
+    cmd = which_softshape() + args
+    print('$ softshape ' + ' '.join(args), flush=True)
+    proc = subprocess.run(cmd, stdout=subprocess.PIPE, text=True)
+    log.write_text(proc.stdout)
+    if proc.returncode != 0:
+        raise RuntimeError(f'softshape {args[0]} failed (exit {proc.returncode}); output in {log}')
+    return proc.stdout
+
+
+def last_json(text: str) -> dict:
+    """Return the last JSON value printed (the tools print a summary object last)."""
+    start = text.rfind('\n{')
+    start = 0 if start < 0 else start + 1
+    if text.lstrip().startswith('{') and text.count('\n{') == 0:
+        start = text.find('{')
+    return json.loads(text[start:])
+
+
+def write_session(cfg, path: Path, scenes: int, actuations: int, seed: int,
+                  first_id: int = 0) -> list[dict]:
+    """Write a session YAML of random placements like the paper's (cylinder, ring, prism)."""
+    from softshape_ros.sim.generate import OBJECT_CYCLE, random_scene
+    rng = np.random.default_rng(seed)
+    out = []
+    for i in range(scenes):
+        s = random_scene(first_id + i, OBJECT_CYCLE[i % len(OBJECT_CYCLE)], rng, cfg)
+        d = json.loads(s.to_json())
+        d['actuations'] = actuations
+        out.append(d)
+    path.write_text(yaml.safe_dump({'scenes': out}, sort_keys=False))
+    return out
+
+
+def record(settings: DemoSettings, stage: Stage, cfg) -> dict:
+    """Run mock_hardware + recorder + collector as separate processes; return bag facts."""
+    from softshape_ros.demo.rig_client import RigClient
+    from tqdm import tqdm
+    root = stage.root
+    session = root / 'session.yaml'
+    write_session(cfg, session, settings.scenes, settings.actuations, settings.seed)
+    bag = root / 'bag'
+    if bag.exists():
+        shutil.rmtree(bag)
+    logs = root / 'logs'
+    total = settings.scenes * (settings.actuations + 1)
+    with RigClient(cfg) as client:
+        mock = NodeProcess('mock_hardware', {'seed': settings.seed}, log_dir=logs).start()
+        recorder = NodeProcess('recorder', {'output': str(bag)}, log_dir=logs).start()
+        procs = [mock, recorder]
+        try:
+            client.wait_for_node('mock_hardware', procs)
+            client.wait_for_node('recorder', procs)
+            client.wait_recorder_subscribed(procs)
+            collector = NodeProcess('collector', {
+                'session': str(session), 'simulated': True, 'rate_hz': settings.rate_hz,
+                'seed': settings.seed, 'wait_for_frames': True, 'start_delay_s': 2.0},
+                log_dir=logs).start()
+            procs.append(collector)
+            t0 = time.monotonic()
+            with tqdm(total=total, desc='recording samples', unit='trigger') as bar:
+                while client.samples_seen < total:
+                    for p in procs:
+                        p.check_alive()
+                    if client.collector_failed:
+                        raise RuntimeError(f'collector failed: {client.collector_failed}')
+                    bar.update(client.samples_seen - bar.n)
+                    time.sleep(0.2)
+                bar.update(client.samples_seen - bar.n)
+            client.wait_images_for_last_trigger(timeout=10.0)
+            time.sleep(1.5)       # the last frames reach the bag
+            elapsed = time.monotonic() - t0
+            collector.stop()
+        finally:
+            codes = {p.name: p.stop() for p in reversed(procs)}
+    if codes.get('recorder') != 0:
+        raise RuntimeError(f'recorder exited {codes.get("recorder")}; see {logs}/recorder.log')
+    from softshape_ros.data.bag_tools import bag_info
+    info = bag_info(bag)
+    return {'bag': str(bag), 'session': str(session), 'triggers': total,
+            'seconds': round(elapsed, 1), 'exit_codes': codes,
+            'bag_info': json.loads(json.dumps(info, default=str))}
+
+
+def live(settings: DemoSettings, stage: Stage, cfg, checkpoint: Path) -> dict:
+    """Run mock_hardware + inference; compare live predictions with the rig's real images."""
+    from softshape_ros.demo.rig_client import RigClient
+    from softshape_ros.model.evaluate import prediction_panels
+    from softshape_ros.model.metrics import yellow_mask
+    from tqdm import tqdm
+    root = stage.root
+    logs = root / 'logs'
+    scenes = write_session(cfg, root / 'live_session.yaml', settings.live_scenes, 0,
+                           settings.seed + 1000, first_id=1000)
+    rng = np.random.default_rng(settings.seed + 2000)
+    limits = np.asarray(cfg.max_pressures_pa)
+    rows = []
+    with RigClient(cfg) as client:
+        mock = NodeProcess('mock_hardware', {'seed': settings.seed + 1}, name='mock_hardware',
+                           log_dir=logs).start()
+        inference = NodeProcess('inference', {'model': str(checkpoint),
+                                              'threads': settings.threads},
+                                log_dir=logs).start()
+        procs = [mock, inference]
+        try:
+            client.wait_for_node('mock_hardware', procs)
+            client.wait_for_node('inference', procs, timeout=60)
+            client.wait_connected(procs)
+            total = settings.live_scenes * settings.live_commands
+            with tqdm(total=total, desc='live predictions', unit='command') as bar:
+                for scene in scenes:
+                    initial = client.start_scene(scene, procs)
+                    for _ in range(settings.live_commands):
+                        p = rng.uniform(0.0, 1.0, 6) * limits
+                        pred, actual, latency = client.command_and_snap(p, procs)
+                        rows.append((scene['id'], p, initial, pred, actual, latency))
+                        bar.update(1)
+        finally:
+            codes = {p.name: p.stop() for p in reversed(procs)}
+    initial = np.stack([r[2] for r in rows])
+    pred = np.stack([r[3] for r in rows])
+    actual = np.stack([r[4] for r in rows])
+    lat = np.asarray([r[5] for r in rows]) * 1e3
+    err = pred.astype(np.float64) - actual
+    copy = initial.astype(np.float64) - actual
+    pick = np.linspace(0, len(rows) - 1, min(6, len(rows))).astype(int)
+    fig = prediction_panels(initial[pick], actual[pick], pred[pick], client.views,
+                            root / 'live_panels.png',
+                            title='live: inference node vs mock rig (unseen placements)')
+    return {
+        'samples': len(rows), 'scenes': [s['id'] for s in scenes],
+        'rmse_255': float(np.sqrt(np.mean(err ** 2))),
+        'copy_initial_rmse_255': float(np.sqrt(np.mean(copy ** 2))),
+        'yellow_mask_fraction': float(yellow_mask(pred, actual).mean()),
+        'command_to_prediction_ms': {'median': float(np.median(lat)),
+                                     'p99': float(np.percentile(lat, 99))},
+        'figure': str(fig), 'exit_codes': codes,
+    }
+
+
+def run_demo(settings: DemoSettings, fresh: bool = False) -> Path:
+    """Run (or reuse) every stage and write ``<out>/report.md``; return its path."""
+    cfg = load_rig_config()
+    root = Path(settings.out)
+    root.mkdir(parents=True, exist_ok=True)
+    (root / 'logs').mkdir(exist_ok=True)
+    results, timings = {}, {}
+    redo = fresh
+    for name in STAGES:
+        stage = Stage(settings, name, redo)
+        t0 = time.monotonic()
+        if stage.reusable():
+            banner(f'{name}: reusing {root} (same settings; --fresh to redo)')
+            results[name] = stage.result()
+            timings[name] = 0.0
+            continue
+        redo = True   # everything after a redone stage is redone too
+        banner(f'{name}')
+        if name == 'record':
+            res = record(settings, stage, cfg)
+        elif name == 'dataset':
+            out = run_tool(['build-dataset', results['record']['bag'], '--out',
+                            str(root / 'dataset'), '--overwrite'], root / 'logs' / 'dataset.txt')
+            meta = json.loads((root / 'dataset' / 'meta.json').read_text())
+            res = {'dataset': str(root / 'dataset'), 'summary': out.strip().splitlines()[-1:],
+                   'count': meta.get('count'), 'dropped': meta.get('dropped'),
+                   'views': meta.get('views')}
+        elif name == 'train':
+            out = run_tool(['train', '--dataset', str(root / 'dataset'), '--out',
+                            str(root / 'model'), '--arch', 'ours', '--seed', str(settings.seed),
+                            '--max-steps', str(settings.max_steps), '--threads',
+                            str(settings.threads)], root / 'logs' / 'train.txt')
+            res = last_json(out)
+        elif name == 'evaluate':
+            run_tool(['evaluate', '--checkpoint', str(root / 'model'), '--dataset',
+                      str(root / 'dataset'), '--validation', '--out', str(root / 'eval')],
+                     root / 'logs' / 'evaluate.txt')
+            res = json.loads((root / 'eval' / 'metrics.json').read_text())
+        else:
+            res = live(settings, stage, cfg, root / 'model')
+        timings[name] = round(time.monotonic() - t0, 1)
+        results[name] = stage.done(dict(res, seconds=timings[name]))
+    from softshape_ros.demo.report import write_report
+    report = write_report(root, settings, results)
+    banner(f'done: {report}')
+    return report
+
+
+def main_args(args) -> int:
+    settings = DemoSettings(**{k: getattr(args, k) for k in asdict(DemoSettings())})
+    run_demo(settings, fresh=args.fresh)
+    return 0
+
+
+if __name__ == '__main__':  # pragma: no cover
+    sys.exit(main_args(None))

@@ -1,0 +1,212 @@
+"""
+The demo's own ROS participant: watches the rig, and drives it for the live stage.
+
+It plays the user's role over DDS (publish a scene, rest trigger, commands, triggers; read
+camera and predicted images), so the live comparison measures what a subscriber would see.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.executors import SingleThreadedExecutor
+from sensor_msgs.msg import Image, JointState
+from std_msgs.msg import Float64MultiArray, Header, String
+
+from softshape_ros.nodes.camera_trigger import IMAGE_QOS
+from softshape_ros.nodes.common import (LATCHED_QOS, RELIABLE_QOS, image_to_numpy, ns_to_stamp,
+                                        stamp_to_ns)
+from softshape_ros.processes import wait_until
+from softshape_ros.vision.preprocess import preprocess
+
+
+class RigClient:
+    """Context manager: an rclpy node spinning in a background thread."""
+
+    def __init__(self, cfg, views=None, gray=None):
+        self.cfg = cfg
+        self.views = list(views or cfg.camera_names)
+        self.gray = cfg.dataset.gray if gray is None else gray
+        self.size = cfg.dataset.image_size
+        self.lock = threading.Lock()
+        self.samples_seen = 0
+        self.last_sample_stamp = None
+        self.collector_failed = ''
+        self.inference_state = ''
+        self.frames = {v: {} for v in self.views}
+        self.predicted = {v: [] for v in self.views}
+        self.measured = None
+
+    def __enter__(self):
+        if not rclpy.ok():
+            rclpy.init()
+            self._owns_context = True
+        else:
+            self._owns_context = False
+        self.node = rclpy.create_node('softshape_demo')
+        n, t = self.node, self.cfg.topics
+        self.pub_scene = n.create_publisher(String, t.scene, LATCHED_QOS)
+        self.pub_sample = n.create_publisher(String, t.sample, RELIABLE_QOS)
+        self.pub_trigger = n.create_publisher(Header, t.trigger, RELIABLE_QOS)
+        self.pub_command = n.create_publisher(Float64MultiArray, t.pressure_command, RELIABLE_QOS)
+        n.create_subscription(String, t.sample, self._on_sample, RELIABLE_QOS)
+        n.create_subscription(DiagnosticArray, t.diagnostics, self._on_diag, RELIABLE_QOS)
+        n.create_subscription(JointState, t.pressure_measured, self._on_measured, RELIABLE_QOS)
+        for v in self.views:
+            n.create_subscription(Image, t.camera('camera_image', v),
+                                  lambda m, v=v: self._on_frame(v, m), IMAGE_QOS)
+            n.create_subscription(Image, t.camera('predicted_image', v),
+                                  lambda m, v=v: self._on_predicted(v, m), IMAGE_QOS)
+        self.executor = SingleThreadedExecutor()
+        self.executor.add_node(n)
+        self._stop = False
+        self.thread = threading.Thread(target=self._spin, daemon=True)
+        self.thread.start()
+        return self
+
+    def _spin(self):
+        while not self._stop:
+            self.executor.spin_once(timeout_sec=0.05)
+
+    def __exit__(self, *exc):
+        self._stop = True
+        self.thread.join(timeout=5)
+        self.executor.remove_node(self.node)
+        self.node.destroy_node()
+        if self._owns_context:
+            rclpy.try_shutdown()
+
+    # -- callbacks -------------------------------------------------------------------------
+    def _on_sample(self, msg):
+        try:
+            stamp = int(json.loads(msg.data)['stamp_ns'])
+        except (ValueError, KeyError, TypeError):
+            return
+        with self.lock:
+            self.samples_seen += 1
+            self.last_sample_stamp = stamp
+
+    def _on_diag(self, msg):
+        for st in msg.status:
+            level = st.level[0] if isinstance(st.level, (bytes, bytearray)) else int(st.level)
+            if st.name == 'collector' and level == 2 and 'failed' in st.message:
+                self.collector_failed = st.message
+            if 'inference' in st.name:
+                self.inference_state = st.message
+
+    def _on_measured(self, msg):
+        self.measured = np.asarray(msg.effort, dtype=np.float64)
+
+    def _on_frame(self, view, msg):
+        with self.lock:
+            store = self.frames[view]
+            store[stamp_to_ns(msg.header.stamp)] = msg
+            while len(store) > 8:
+                store.pop(next(iter(store)))
+
+    def _on_predicted(self, view, msg):
+        with self.lock:
+            self.predicted[view].append((time.perf_counter(), msg))
+
+    # -- queries ---------------------------------------------------------------------------
+    def wait_for_node(self, name: str, procs=(), timeout: float = 30.0) -> None:
+        wait_until(lambda: name in self.node.get_node_names(), timeout,
+                   what=f'{name} in the ROS graph', processes=procs)
+
+    def wait_connected(self, procs=(), timeout: float = 30.0) -> None:
+        t = self.cfg.topics
+
+        def ready():
+            n = self.node
+            return (n.count_subscribers(t.pressure_command) >= 2
+                    and n.count_subscribers(t.trigger) >= 1
+                    and all(n.count_publishers(t.camera('predicted_image', v)) >= 1
+                            for v in self.views))
+        wait_until(ready, timeout, what='mock_hardware and inference connections',
+                   processes=procs)
+
+    def wait_recorder_subscribed(self, procs=(), timeout: float = 30.0) -> None:
+        """Wait until something besides us subscribes to every camera and pressure topic."""
+        t = self.cfg.topics
+        ours = {t.pressure_measured: 1}
+        topics = [t.pressure_measured]
+        for v in self.views:
+            ours[t.camera('camera_image', v)] = 1
+            topics += [t.camera(k, v) for k in ('camera_image', 'camera_info', 'capture_time')]
+        wait_until(lambda: all(self.node.count_subscribers(x) > ours.get(x, 0) for x in topics),
+                   timeout, what='the recorder to subscribe the rig topics', processes=procs)
+        time.sleep(0.5)   # matching is seen here slightly before the writer side has it
+
+    def wait_images_for_last_trigger(self, timeout: float) -> None:
+        stamp = self.last_sample_stamp
+        if stamp is not None:
+            wait_until(lambda: all(stamp in self.frames[v] for v in self.views), timeout,
+                       what='the last trigger\'s images')
+
+    def prepared(self, stamp: int) -> np.ndarray:
+        """V x C x S x S of the camera frames with ``stamp`` (as the dataset builder does)."""
+        out = []
+        for v in self.views:
+            frame = image_to_numpy(self.frames[v][stamp])
+            out.append(preprocess(frame, self.cfg.cameras[v].crop_px, self.size, self.gray))
+        return np.stack(out)
+
+    # -- driving ---------------------------------------------------------------------------
+    def _settle(self, target, procs, timeout=None) -> bool:
+        tol = self.cfg.collection.settle_tolerance_pa
+        timeout = self.cfg.collection.settle_timeout_s if timeout is None else timeout
+        try:
+            wait_until(lambda: self.measured is not None
+                       and np.max(np.abs(self.measured - target)) <= tol,
+                       timeout, what='pressures to settle', processes=procs)
+            return True
+        except TimeoutError:
+            return False
+
+    def _snap(self, procs, kind: str, scene_id: int, command) -> int:
+        stamp = time.time_ns()
+        self.pub_sample.publish(String(data=json.dumps({
+            'stamp_ns': stamp, 'scene_id': scene_id, 'kind': kind, 'index': 0,
+            'command_pa': [float(x) for x in command], 'settled': True})))
+        h = Header()
+        h.stamp = ns_to_stamp(stamp)
+        self.pub_trigger.publish(h)
+        wait_until(lambda: all(stamp in self.frames[v] for v in self.views), 20.0,
+                   what='camera frames for the trigger', processes=procs)
+        return stamp
+
+    def start_scene(self, scene: dict, procs) -> np.ndarray:
+        """Publish a scene, vent, take its rest images; wait until inference has them."""
+        zeros = np.zeros(6)
+        self.pub_scene.publish(String(data=json.dumps(scene)))
+        self.pub_command.publish(Float64MultiArray(data=zeros.tolist()))
+        wait_until(lambda: 'waiting' in self.inference_state, 10.0,
+                   what='inference to take the new scene', processes=procs)
+        self._settle(zeros, procs)
+        time.sleep(0.2)
+        stamp = self._snap(procs, 'rest', scene['id'], zeros)
+        wait_until(lambda: self.inference_state == 'predicting', 10.0,
+                   what='inference to take the rest images', processes=procs)
+        return self.prepared(stamp)
+
+    def command_and_snap(self, pressures, procs):
+        """Send a command; return (predicted, actual after settling, command->prediction s)."""
+        with self.lock:
+            before = {v: len(self.predicted[v]) for v in self.views}
+        t0 = time.perf_counter()
+        self.pub_command.publish(Float64MultiArray(data=[float(x) for x in pressures]))
+        wait_until(lambda: all(len(self.predicted[v]) > before[v] for v in self.views), 20.0,
+                   what='predicted images', processes=procs)
+        with self.lock:
+            got = [self.predicted[v][before[v]] for v in self.views]
+        latency = max(t for t, _ in got) - t0
+        pred = np.stack([image_to_numpy(m)[None] if m.encoding == 'mono8'
+                         else image_to_numpy(m).transpose(2, 0, 1) for _, m in got])
+        self._settle(np.asarray(pressures), procs)
+        stamp = self._snap(procs, 'actuation', -1, pressures)
+        return pred, self.prepared(stamp), latency
