@@ -18,6 +18,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.executors import (ExternalShutdownException, MultiThreadedExecutor,
                              SingleThreadedExecutor)
 from rclpy.node import Node
+from rclpy.signals import SignalHandlerOptions
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
                        qos_profile_sensor_data)
 from sensor_msgs.msg import Image
@@ -116,16 +117,20 @@ def run_node(factory: Callable[[], Node], args=None, multithreaded: bool = False
     Init rclpy, spin the node until SIGINT/SIGTERM, clean up, return the exit code.
 
     Nodes may define ``on_shutdown()`` (e.g. vent the pressures); it runs after spinning
-    stops and before the node is destroyed, whatever stopped it.
+    stops and before the node is destroyed, whatever stopped it, with the ROS context still
+    up so it can publish. For that, rclpy's own signal handlers (which shut the context down
+    first) are not installed: SIGINT/SIGTERM raise KeyboardInterrupt, and the executor spins
+    in 0.1 s slices so the interrupt is seen promptly.
     """
-    rclpy.init(args=args)
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     node = None
     code = 0
     try:
         node = factory()
         executor = MultiThreadedExecutor() if multithreaded else SingleThreadedExecutor()
         executor.add_node(node)
-        executor.spin()
+        while rclpy.ok():
+            executor.spin_once(timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except Exception as exc:  # a clear message, not a traceback wall, and a failing exit code
@@ -150,6 +155,7 @@ def run_node(factory: Callable[[], Node], args=None, multithreaded: bool = False
 def main_wrapper(factory: Callable[[], Node]) -> Callable[[], int]:
     """Build a console-script ``main`` that exits with run_node's code (SIGTERM like SIGINT)."""
     def main(args=None) -> int:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
         signal.signal(signal.SIGTERM, signal.default_int_handler)
         sys.exit(run_node(factory, args=args))
     return main
