@@ -51,8 +51,7 @@ def run() -> dict:
     from std_msgs.msg import Float64MultiArray, String
 
     from softshape_ros.config import load_rig_config
-    from softshape_ros.nodes.camera_trigger import IMAGE_QOS
-    from softshape_ros.nodes.common import LATCHED_QOS, RELIABLE_QOS, numpy_to_image
+    from softshape_ros.nodes.common import IMAGE_QOS, LATCHED_QOS, RELIABLE_QOS, numpy_to_image
     from softshape_ros.processes import NodeProcess, wait_until
 
     cfg = load_rig_config()

@@ -18,8 +18,7 @@ from std_srvs.srv import Trigger
 
 from softshape_ros.config import load_rig_config
 from softshape_ros.model import Predictor
-from softshape_ros.nodes.camera_trigger import IMAGE_QOS
-from softshape_ros.nodes.common import (LATCHED_QOS, RELIABLE_QOS, image_to_numpy,
+from softshape_ros.nodes.common import (IMAGE_QOS, LATCHED_QOS, RELIABLE_QOS, image_to_numpy,
                                         ns_to_stamp, stamp_to_ns)
 from softshape_ros.scene import Scene
 from softshape_ros.vision.preprocess import preprocess

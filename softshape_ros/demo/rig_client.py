@@ -18,9 +18,8 @@ from rclpy.executors import SingleThreadedExecutor
 from sensor_msgs.msg import Image, JointState
 from std_msgs.msg import Float64MultiArray, Header, String
 
-from softshape_ros.nodes.camera_trigger import IMAGE_QOS
-from softshape_ros.nodes.common import (LATCHED_QOS, RELIABLE_QOS, image_to_numpy, ns_to_stamp,
-                                        stamp_to_ns)
+from softshape_ros.nodes.common import (IMAGE_QOS, LATCHED_QOS, RELIABLE_QOS, image_to_numpy,
+                                        ns_to_stamp, stamp_to_ns)
 from softshape_ros.processes import wait_until
 from softshape_ros.vision.preprocess import preprocess
 

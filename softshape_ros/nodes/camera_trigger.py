@@ -19,7 +19,7 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image, TimeReference
 from std_msgs.msg import Header
 
-from softshape_ros.nodes.common import (ERROR, OK, RELIABLE_QOS, SENSOR_QOS, WARN,
+from softshape_ros.nodes.common import (ERROR, IMAGE_QOS, OK, RELIABLE_QOS, SENSOR_QOS, WARN,
                                         declare_rig_config, diagnostic_status, main_wrapper,
                                         ns_to_stamp, numpy_to_image, publish_diagnostics,
                                         stamp_to_ns)
@@ -27,15 +27,6 @@ from softshape_ros.vision.camera_info import (Calibration, CalibrationError,
                                               default_calibration_path, load_calibration)
 from softshape_ros.vision.capture import CaptureError, open_source
 from softshape_ros.vision.sync import RollingStats, SkewTracker
-
-
-#: Images and CameraInfo: keep-last 5 like the sensor-data profile, but *offered* reliable.
-#: Best-effort subscribers (viewers, SENSOR_QOS) still match; reliable ones (the recorder
-#: adapts to its publishers) get every frame: a 640x480 best-effort frame is lost whenever
-#: one of its ~15 UDP fragments is (benchmarks/bench_cameras.py measures both).
-IMAGE_QOS = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE,
-                       history=HistoryPolicy.KEEP_LAST)
-
 
 #: Peer capture times: a deep reader queue so a busy moment does not lose pairings.
 PEER_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,

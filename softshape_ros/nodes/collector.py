@@ -13,7 +13,6 @@ ends venting. With no ``session`` parameter the node waits idle.
 from __future__ import annotations
 
 import json
-import signal
 import sys
 import threading
 import time
@@ -394,16 +393,4 @@ class _Stopped(Exception):
     """The node is shutting down: leave the session loop."""
 
 
-def _collector_venting_on_sigint() -> Collector:
-    """
-    Build the node with SIGINT as a plain KeyboardInterrupt.
-
-    rclpy's own handler shuts every context down before on_shutdown runs, and a shut-down
-    context cannot publish the final vent; Python's handler lets run_node call on_shutdown
-    with the context alive (the 1 Hz diagnostics timer bounds the wake-up to a second).
-    """
-    signal.signal(signal.SIGINT, signal.default_int_handler)
-    return Collector()
-
-
-main = main_wrapper(_collector_venting_on_sigint)
+main = main_wrapper(Collector)

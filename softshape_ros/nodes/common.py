@@ -25,8 +25,14 @@ from sensor_msgs.msg import Image
 
 from softshape_ros.config import RigConfig, load_rig_config
 
-#: Camera images: the sensor-data profile (best effort, keep last 5), as DESIGN.md says.
+#: The sensor-data profile (best effort, keep last 5), DESIGN.md's choice for images.
 SENSOR_QOS = qos_profile_sensor_data
+#: Camera and predicted images, CameraInfo: keep-last 5 like SENSOR_QOS, but offered reliable.
+#: Best-effort subscribers (viewers, SENSOR_QOS) still match; reliable ones (the recorder
+#: adapts to its publishers) get every frame: a 640x480 best-effort frame is lost whenever
+#: one of its ~15 UDP fragments is (benchmarks/bench_cameras.py measures both).
+IMAGE_QOS = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE,
+                       history=HistoryPolicy.KEEP_LAST)
 #: Commands, measurements, triggers: reliable, modest depth.
 RELIABLE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
                           history=HistoryPolicy.KEEP_LAST)

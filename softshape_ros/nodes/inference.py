@@ -24,11 +24,10 @@ from std_srvs.srv import Trigger
 
 from softshape_ros.model.serving import (InferenceCore, LatestSlot, PredictionError, overlay,
                                          to_hwc)
-from softshape_ros.nodes.camera_trigger import IMAGE_QOS
-from softshape_ros.nodes.common import (ERROR, LATCHED_QOS, OK, RELIABLE_QOS, SENSOR_QOS, WARN,
-                                        declare_rig_config, diagnostic_status, image_to_numpy,
-                                        main_wrapper, numpy_to_image, publish_diagnostics,
-                                        stamp_to_ns)
+from softshape_ros.nodes.common import (ERROR, IMAGE_QOS, LATCHED_QOS, OK, RELIABLE_QOS,
+                                        SENSOR_QOS, WARN, declare_rig_config, diagnostic_status,
+                                        image_to_numpy, main_wrapper, numpy_to_image,
+                                        publish_diagnostics, stamp_to_ns)
 
 
 class InferenceNode(Node):

@@ -24,8 +24,9 @@ from sensor_msgs.msg import CameraInfo, Image, JointState, TimeReference
 from std_msgs.msg import Float64MultiArray, Header, String
 
 from softshape_ros.hardware.pressure import CommandError, FirstOrderRegulator, check_command
-from softshape_ros.nodes.camera_trigger import IMAGE_QOS, camera_info_msg, time_reference_msg
-from softshape_ros.nodes.common import (ERROR, LATCHED_QOS, OK, RELIABLE_QOS, SENSOR_QOS, WARN,
+from softshape_ros.nodes.camera_trigger import camera_info_msg, time_reference_msg
+from softshape_ros.nodes.common import (ERROR, IMAGE_QOS, LATCHED_QOS, OK, RELIABLE_QOS,
+                                        SENSOR_QOS, WARN,
                                         declare_rig_config, diagnostic_status, main_wrapper,
                                         ns_to_stamp, numpy_to_image, publish_diagnostics)
 from softshape_ros.scene import Scene, SceneError
