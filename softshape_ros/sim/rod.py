@@ -107,6 +107,7 @@ class Rod:
         # Quadrature nodes and Magnus intervals.
         ng = spec.n_gauss or spec.order + 4
         xg, wg = np.polynomial.legendre.leggauss(ng)
+        self.leg_x, self.leg_w = xg, wg           # the Gauss rule on [-1, 1], reused
         seg_i, a_loc, b_loc, gauss_X, gauss_w, gauss_seg, gauss_node = [], [], [], [], [], [], []
         node = 0
         for s, L in enumerate(self.lengths):
@@ -135,6 +136,8 @@ class Rod:
         self.phi_z1 = self.phi(self.int_seg, z1)
         self.phi_z2 = self.phi(self.int_seg, z2)
         self.phi_g = self.phi(self.gauss_seg, self.gauss_X - self.offsets[self.gauss_seg])
+        node_seg = np.concatenate([[0], self.int_seg])
+        self.phi_nodes = self.phi(node_seg, self.node_X - self.offsets[node_seg])
 
     # -- basis -------------------------------------------------------------------------
     def _col(self, seg: int, comp_index: int, j: int) -> int:

@@ -210,7 +210,7 @@ class Statics:
         Mp = np.zeros((ng + 1, 3))
         extra = np.zeros((n, n))
         Qp = np.zeros(n)
-        xg, wg = np.polynomial.legendre.leggauss(len(rod.gauss_X) // rod.nseg)
+        xg, wg = rod.leg_x, rod.leg_w
         for t, is_point, in_q in zip(terms, point_terms, quad):
             if len(t.X) == 0:
                 continue
