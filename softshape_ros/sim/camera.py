@@ -63,5 +63,5 @@ class PinholeCamera:
         d[..., 0] = xc[None, :]
         d[..., 1] = yc[:, None]
         d[..., 2] = 1.0
-        d /= np.linalg.norm(d, axis=-1, keepdims=True)
-        return d @ self.R.T
+        d /= np.sqrt(np.einsum('hwi,hwi->hw', d, d))[..., None]
+        return np.einsum('hwi,ji->hwj', d, self.R)

@@ -48,9 +48,9 @@ class Obstacle:
     def raycast(self, origin: np.ndarray, dirs: np.ndarray):
         """Return hit distance (P,) (inf = miss) and world normals (P, 3) for unit rays."""
         o = (np.asarray(origin, dtype=float) - self.t) @ self.R
-        d = dirs @ self.R
+        d = np.einsum('pi,ij->pj', dirs, self.R)       # einsum: far faster than @ for (N,3)
         t, n = self._raycast(o, d)
-        return t, n @ self.R.T
+        return t, np.einsum('pi,ji->pj', n, self.R)
 
     def bounding_radius(self) -> float:
         return np.inf

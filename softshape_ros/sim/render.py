@@ -54,7 +54,7 @@ def render_view(camera: PinholeCamera, centres: np.ndarray, radii: np.ndarray, o
             continue
         d = dirs[i0:i1, j0:j1]
         oc = c - o
-        b = d @ oc
+        b = np.einsum('hwi,i->hw', d, oc)
         disc = b * b - (oc @ oc - r * r)
         t = b - np.sqrt(np.maximum(disc, 0.0))
         sub = depth[i0:i1, j0:j1]
@@ -74,7 +74,7 @@ def render_view(camera: PinholeCamera, centres: np.ndarray, radii: np.ndarray, o
         if np.isfinite(rb):
             # Only rays that pass through the object's bounding sphere can hit it.
             oc = obj.t - o
-            b = flat_dirs @ oc
+            b = np.einsum('pi,i->p', flat_dirs, oc)
             sel = np.nonzero(b * b - (oc @ oc - rb * rb) > 0)[0]
         else:
             sel = np.arange(len(flat_dirs))
