@@ -24,7 +24,6 @@ from softshape_ros.sim.rod import Rod, RodSpec
 from softshape_ros.sim.statics import Actuator, SolverError, Statics
 
 SPHERE_SPACING_M = 0.0015
-PENALTY_STAGES = (1.0,)
 
 
 @dataclass
@@ -109,11 +108,7 @@ class SimRig:
         if self.contact is not None:
             check = self.statics.assemble(q, p, [], 1.0, self.contact)
             if check.extra['contacts']:
-                q0 = self._touching_start(q)
-                try:
-                    q, asm, it2 = self._solve_contact(p, q0)
-                except SolverError:
-                    q, asm, it2 = self.statics.solve(p, q0=None, contact=self.contact)
+                q, asm, it2 = self._solve_contact(p, self._touching_start(q))
                 it += it2
             else:
                 asm = check
@@ -121,18 +116,28 @@ class SimRig:
         return self._state(q, p, asm, it)
 
     def _solve_contact(self, p, q0):
-        """Solve with contact, stiffening the penalty in stages (soft first: smoother)."""
+        """
+        Solve with contact from ``q0``; on failure retry with the penalty stiffened in stages.
+
+        Attempts: direct from ``q0``; from ``q0`` with the penalty at 1/10 first; from the
+        straight rod with 1/100, 1/10, 1. The last failure raises :class:`SolverError`.
+        """
         k_full = self.contact.k
-        its = 0
-        try:
-            for f in PENALTY_STAGES:
-                self.contact.k = k_full * f
-                q0, asm, it = self.statics.solve(p, q0=q0, contact=self.contact,
-                                                 tol=1e-6 if f < 1 else 1e-10)
-                its += it
-        finally:
-            self.contact.k = k_full
-        return q0, asm, its
+        its, error = 0, None
+        for start, stages in ((q0, (1.0,)), (q0, (0.1, 1.0)), (None, (0.01, 0.1, 1.0))):
+            q = start
+            try:
+                for f in stages:
+                    self.contact.k = k_full * f
+                    q, asm, it = self.statics.solve(p, q0=q, contact=self.contact,
+                                                    tol=1e-6 if f < 1 else 1e-10)
+                    its += it
+                return q, asm, its
+            except SolverError as exc:
+                error = exc
+            finally:
+                self.contact.k = k_full
+        raise error
 
     def _touching_start(self, q_free):
         """Return the shape on the way from the last one to ``q_free`` that just touches."""
