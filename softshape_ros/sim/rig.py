@@ -41,6 +41,11 @@ class SimState:
     contacts: list = field(default_factory=list)
     max_penetration_m: float = 0.0
 
+    @property
+    def backbone(self) -> np.ndarray:
+        """Alias of ``backbone_m`` (world points, m)."""
+        return self.backbone_m
+
     def to_dict(self) -> dict:
         return {'q': self.q.tolist(), 'pressures_pa': self.pressures_pa.tolist(),
                 'tip_position_m': self.tip_pose[:3, 3].tolist(),
