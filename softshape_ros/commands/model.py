@@ -39,14 +39,16 @@ def _evaluate(args) -> int:
 
     from softshape_ros.data import load_dataset
     from softshape_ros.model.checkpoint import read_config
-    from softshape_ros.model.data import split_indices
     from softshape_ros.model.evaluate import evaluate
     ds = load_dataset(args.dataset)
     idx = None
     if args.validation:
-        cfg = read_config(args.checkpoint)
-        t, rows = cfg['training'], np.arange(cfg['dataset']['rows_used'])
-        _, idx = split_indices(ds.scene, rows, t['split'], t['val_fraction'], t['seed'])
+        rows = read_config(args.checkpoint).get('dataset', {}).get('val_rows')
+        if not isinstance(rows, list) or not rows:
+            raise ValueError(f'{args.checkpoint}: config.json records no validation rows')
+        if max(rows) >= len(ds):
+            raise ValueError(f'{args.checkpoint}: validation rows do not fit {ds.path}')
+        idx = np.asarray(rows, dtype=np.int64)
     res = evaluate(args.checkpoint, ds, indices=idx, out_dir=args.out)
     print(json.dumps(res, indent=2))
     return 0

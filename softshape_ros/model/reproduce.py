@@ -253,7 +253,7 @@ def distance_check(checkpoint, ds, path) -> None:
         if x > best:
             best, act = x, p
     initial, target = [], []
-    distances = [0.016, 0.020, 0.024, 0.028, 0.034]
+    distances = [0.020, 0.023, 0.026, 0.030, 0.036]     # rest robot clear of the object
     for i, d in enumerate(distances):
         rig.set_scene(Scene(id=1000 + i, object='cylinder', position_m=(d, 0.0, 0.02),
                             dims={'radius_m': 0.006, 'height_m': 0.05}))

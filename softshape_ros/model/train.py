@@ -184,6 +184,7 @@ def _train(dataset, config, out, indices, progress, desc, rank, world) -> TrainR
                           'pressure': 'Pa / max_pressure_pa, clamped to [0, max]'},
         'dataset': {'path': str(ds.path), 'count': len(ds), 'rows_used': int(len(idx)),
                     'train': int(len(tr_idx)), 'val': int(len(va_idx)),
+                    'val_rows': [int(i) for i in va_idx],
                     'provenance': ds.meta.get('provenance')},
         'training': dict(asdict(config), world_size=world, steps=step,
                          best_val_mse=best, copy_val_mse=copy_mse),
