@@ -8,12 +8,14 @@ same run, PyElastica (``pip install -r requirements-bench.txt``) bringing the sa
 cantilevers to rest by damped dynamics: a slender one (L/d = 40, where the elastica is
 exact) and the robot-sized one with shear on. Sizes via environment variables:
 SIM_BENCH_CONTACT_N (actuations per object, default 1000), SIM_BENCH_DATASET_N (default 1000).
+Figure: bench_out/sim_samples.png, rest and actuated images of the first samples per view.
 """
 
 from __future__ import annotations
 
 import os
 import statistics
+from pathlib import Path
 import tempfile
 import time
 
@@ -24,6 +26,8 @@ from softshape_ros.scene import load_session
 from softshape_ros.sim import SimRig
 from softshape_ros.sim.rod import Rod, RodSpec
 from softshape_ros.sim.statics import PointLoad, SolverError, Statics
+
+FIG = Path(__file__).resolve().parent.parent / 'bench_out' / 'sim_samples.png'
 
 
 def _elastica_tip(a: float) -> np.ndarray:
@@ -190,16 +194,42 @@ def bench_equilibria(cfg, n_contact: int) -> dict:
     return out
 
 
+def _figure(ds, rows: int = 6) -> None:
+    """Save rest | actuated images (main, side) of samples from different scenes."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    picks = [int(np.nonzero(ds.scene == s)[0][1]) for s in np.unique(ds.scene)[:rows]]
+    fig, axes = plt.subplots(len(picks), 4, figsize=(6, 1.6 * len(picks)))
+    for r, i in enumerate(picks):
+        for c, (arr, v, name) in enumerate([(ds.initial, 0, 'rest main'),
+                                            (ds.target, 0, 'actuated main'),
+                                            (ds.initial, 1, 'rest side'),
+                                            (ds.target, 1, 'actuated side')]):
+            ax = axes[r, c]
+            ax.imshow(arr[i, v, 0], cmap='gray', vmin=0, vmax=255)
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if r == 0:
+                ax.set_title(name, fontsize=7)
+        axes[r, 0].set_ylabel(f'scene {int(ds.scene[i])}', fontsize=7)
+    fig.tight_layout()
+    FIG.parent.mkdir(exist_ok=True)
+    fig.savefig(FIG, dpi=120)
+    plt.close(fig)
+
+
 def bench_dataset(cfg, n: int) -> dict:
     from softshape_ros.sim.generate import generate, make_plan
     plan = make_plan(cfg, n, 12, seed=0)
     with tempfile.TemporaryDirectory() as d:
         t0 = time.perf_counter()
-        _, summary = generate(cfg, plan, os.path.join(d, 'ds'), ['main', 'side'],
-                              progress=False)
+        ds, summary = generate(cfg, plan, os.path.join(d, 'ds'), ['main', 'side'],
+                               progress=False)
         wall = time.perf_counter() - t0
+        _figure(ds)
     return {'samples': n, 'wall_s': wall, 'stereo_samples_per_s': n / wall,
-            'cores': os.cpu_count(), **summary}
+            'cores': os.cpu_count(), 'figure': str(FIG), **summary}
 
 
 def run() -> dict:

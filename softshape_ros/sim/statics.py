@@ -23,7 +23,7 @@ from softshape_ros.sim.lie import cross, skew
 from softshape_ros.sim.rod import Kinematics, Rod
 
 _EX = np.array([1.0, 0.0, 0.0])
-TRUST_START_M = 0.008     # first step with an object in the scene moves the backbone <= 4 mm
+TRUST_START_M = 0.008     # first step with an object in the scene moves the backbone <= 8 mm
 TRUST_MAX_M = 0.05
 TRUST_MIN_M = 5e-4
 ENERGY_MERIT_TOL = 1e-5   # below this relative residual the merit is the residual norm
