@@ -145,3 +145,38 @@ def test_virtual_due_command_line(tmp_path):
 def test_virtual_due_command_line_rejects_bad_probability():
     from softshape_ros.cli import main
     assert main(['virtual-due', '--drop-rx', '2']) == 2
+
+
+def test_heartbeats_stop_when_the_host_stops_kicking():
+    """A hung executor must not keep the firmware fed through the link thread's heartbeats."""
+    with VirtualDue(LIM, noise_pa=0) as vd:
+        link = DueLink(vd.path, LIM, fw_watchdog_s=0.3).start()
+        assert link.wait_connected(5)
+        link.kick()
+        assert link.wait_ack(link.send_command([20000.0] * 6), 1.0)
+        t_end = time.monotonic() + 1.0
+        while time.monotonic() < t_end:        # a live host: kicks keep heartbeats going
+            link.kick()
+            time.sleep(0.05)
+        assert vd.applied()[-1].reason == 'command'
+        time.sleep(1.0)                        # the host stops kicking
+        assert vd.applied()[-1].reason == 'watchdog'
+        assert vd.applied()[-1].setpoints_pa == (0,) * 6
+        link.close()
+
+
+def test_feedback_fault_vents():
+    with VirtualDue(LIM, noise_pa=0) as vd:
+        events = []
+        link = DueLink(vd.path, LIM, on_event=lambda lv, t: events.append(t)).start()
+        assert link.wait_connected(5)
+        assert link.wait_ack(link.send_command([30000.0] * 6), 1.0)
+        vd.broken_sensors = {2}
+        deadline = time.monotonic() + 3.0
+        while time.monotonic() < deadline and vd.applied()[-1].reason != 'vent':
+            time.sleep(0.02)
+        assert vd.applied()[-1].reason == 'vent'
+        assert vd.applied()[-1].setpoints_pa == (0,) * 6
+        assert any('feedback fault' in e for e in events)
+        assert link.status()['fault_vents'] == 1
+        link.close()

@@ -129,6 +129,7 @@ class DueLink:
         self.last_state_mono = 0.0
         self.rtts_s = collections.deque(maxlen=2000)
         self.counters = collections.Counter()
+        self._last_kick = None               # host liveness; None = not gated (no kick() yet)
 
     # ------------------------------------------------------------------ public API
     def start(self) -> 'DueLink':
@@ -149,6 +150,15 @@ class DueLink:
         if p.shape != (N_CHAMBERS,) or not np.all(np.isfinite(p)) or np.any(p < 0):
             raise ValueError(f'send_command needs {N_CHAMBERS} checked pressures, got {p}')
         return self._send(lambda seq: P.Command(seq, tuple(int(round(x)) for x in p)))
+
+    def kick(self) -> None:
+        """
+        Say the host is alive; once called, heartbeats stop when kicks stop.
+
+        The firmware watchdog is fed by heartbeats from this link thread; a host whose
+        executor hangs must not keep the last set-point alive through them.
+        """
+        self._last_kick = time.monotonic()
 
     def vent(self) -> int:
         """Ask the firmware to vent all chambers to zero (acknowledged and retried)."""
@@ -247,6 +257,8 @@ class DueLink:
                 self._serve()
             except (LinkError, LinkDown, serial.SerialException, OSError) as exc:
                 self._down(str(exc), 'error')
+            except Exception as exc:  # noqa: BLE001 - never let the link thread die
+                self._down(f'unexpected {type(exc).__name__}: {exc}', 'error')
             finally:
                 self._drop_port()
             if not self._stop.is_set():
@@ -367,8 +379,11 @@ class DueLink:
                     self._pending = (seq, frame, first, now)
                     self.counters['retransmits'] += 1
                     self._write(frame)
-                elif now - self._last_tx > self.heartbeat_s:
+                elif now - self._last_tx > self.heartbeat_s and self._host_alive(now):
                     self._write(P.Heartbeat().encode())
+
+    def _host_alive(self, now: float) -> bool:
+        return self._last_kick is None or now - self._last_kick < self.fw_watchdog_ms / 1000
 
     def _handle(self, frame: P.Frame, rx_ns: int) -> None:
         try:
@@ -394,7 +409,13 @@ class DueLink:
         if changed & msg.flags & P.F_CLAMPED:
             self.on_event('warn', 'Due firmware clamped a command to its own limits')
         if changed & msg.flags & P.F_FAULT:
-            self.on_event('error', 'Due reports a pressure feedback fault')
+            # No trustworthy measurement: do not hold pressure blind; vent and report.
+            self.on_event('error', 'Due reports a pressure feedback fault: venting')
+            try:
+                self.vent()
+                self.counters['fault_vents'] += 1
+            except LinkDown:
+                pass
         self.last_flags = msg.flags & ~P.F_ACK
         stamp_ns, dev_us = self.clock.map(msg.t_us, rx_ns)
         self.on_state(Measurement(stamp_ns, dev_us, np.asarray(msg.pressures_pa, dtype=float),

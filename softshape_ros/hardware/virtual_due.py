@@ -56,6 +56,7 @@ class VirtualDue:
         self.drop_tx = 0.0
         self.corrupt_rx = 0.0
         self.corrupt_tx = 0.0
+        self.broken_sensors: set[int] = set()   # channels whose feedback reads out of range
         self.log: list[Applied] = []
         self.stats = {'rx_bytes': 0, 'tx_bytes': 0, 'rx_dropped': 0, 'tx_dropped': 0,
                       'rx_corrupted': 0, 'tx_corrupted': 0, 'tx_overflow': 0, 'connects': 0}
@@ -218,7 +219,7 @@ class VirtualDue:
                 last = now
                 for i, v in enumerate(p):
                     noisy = v + self.rng.gauss(0.0, self.noise_pa) if self.noise_pa else v
-                    core.set_measured(i, int(round(noisy)))
+                    core.set_measured(i, int(round(noisy)), i not in self.broken_sensors)
                 if data:
                     self.stats['rx_bytes'] += len(data)
                     data = self._mangle(data, self.drop_rx, self.corrupt_rx, 'rx')

@@ -50,6 +50,13 @@ class PressureBridge(Node):
         state_rate = int(par('state_rate_hz', 100).value)
         diag_period = float(par('diagnostics_period_s', 1.0).value)
         self.frame_id = str(par('frame_id', 'due').value)
+        # The firmware's CONFIG frame carries these as u16; check them here with a clear message.
+        for name, value, lo, hi in (('firmware_watchdog_s', fw_watchdog_s, 0.02, 10.0),
+                                    ('state_rate_hz', state_rate, 1, 1000),
+                                    ('watchdog_timeout_s', self.watchdog_timeout_s, 0.05, 600.0),
+                                    ('link_timeout_s', link_timeout_s, 0.05, 60.0)):
+            if not lo <= value <= hi:
+                raise ValueError(f'parameter {name} = {value} is outside [{lo}, {hi}]')
 
         t = self.cfg.topics
         self.names = list(self.cfg.chamber_names)
@@ -120,7 +127,7 @@ class PressureBridge(Node):
                 f'{[round(x) for x in checked.pressures_pa]} Pa', throttle_duration_sec=1.0)
         try:
             self.link.send_command(checked.pressures_pa)
-        except LinkDown as exc:
+        except (LinkDown, ValueError) as exc:
             self.counts['not_applied'] += 1
             self.get_logger().warn(f'pressure command not applied: {exc}',
                                    throttle_duration_sec=1.0)
@@ -138,6 +145,7 @@ class PressureBridge(Node):
         return ok, f'{why}: vented' if ok else f'{why}: vent sent, not acknowledged in 0.5 s'
 
     def _watchdog(self) -> None:
+        self.link.kick()        # the executor is alive: heartbeats may keep the firmware fed
         if self.active and time.monotonic() - self.last_command > self.watchdog_timeout_s:
             self.counts['watchdog_vents'] += 1
             ok, text = self._vent(f'no command for {self.watchdog_timeout_s} s')
