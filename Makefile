@@ -35,7 +35,8 @@ venv: $(VENV)/.stamp
 $(VENV)/.stamp: requirements.txt setup.py
 	@test -x $(VPY) || $(PYTHON) -m venv $(VENV)
 	@touch $(VENV)/COLCON_IGNORE
-	$(VPY) -m pip install --disable-pip-version-check -q -r requirements.txt
+	set -o pipefail; $(VPY) -m pip install --disable-pip-version-check -q -r requirements.txt 2>&1 \
+		| { grep -v 'is ignored: it is neither a file nor a directory' || true; }
 	$(VPY) -m pip install --disable-pip-version-check -q --no-deps --no-build-isolation -e .
 	@touch $@
 

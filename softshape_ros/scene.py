@@ -50,6 +50,8 @@ class Scene:
             if len(vec) != 3 or not all(_finite(v) for v in vec):
                 raise SceneError(f'scene {self.id}: {name} must be 3 finite numbers, got {vec!r}')
             object.__setattr__(self, name, tuple(float(v) for v in vec))
+        if not isinstance(self.dims, dict):
+            raise SceneError(f'scene {self.id}: dims must be a mapping, got {self.dims!r}')
         need = set(OBJECT_DIMS[self.object])
         have = set(self.dims)
         if have != need:
@@ -83,7 +85,9 @@ class Scene:
     def from_json(cls, text: str) -> 'Scene':
         try:
             return cls.from_dict(json.loads(text))
-        except (json.JSONDecodeError, TypeError) as exc:
+        except (ValueError, TypeError, RecursionError) as exc:
+            if isinstance(exc, SceneError):
+                raise
             raise SceneError(f'scene JSON is malformed: {exc}') from None
 
 

@@ -14,7 +14,8 @@ import pytest
 from rclpy.parameter import Parameter
 
 from softshape_ros.config import load_rig_config
-from softshape_ros.data.builder import build_dataset, decode_image
+from softshape_ros.data.builder import build_dataset
+from softshape_ros.vision.image_msg import decode_image
 from softshape_ros.vision.preprocess import preprocess
 
 

@@ -21,6 +21,9 @@ def test_round_trip_json():
     ('{"id": 1, "colour": "red"}', "unknown key 'colour'"),
     ('not json', 'malformed'),
     ('[1, 2]', 'must be a mapping'),
+    ('{"id": 1, "object": "cylinder", "dims": ["radius_m", "height_m"]}',
+     'dims must be a mapping'),
+    ('[' * 100000 + ']' * 100000, 'malformed'),
 ])
 def test_bad_scenes_are_named(bad, match):
     with pytest.raises(SceneError, match=match):

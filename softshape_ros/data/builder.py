@@ -25,30 +25,8 @@ from softshape_ros.data.bag_tools import bag_info
 from softshape_ros.data.bag_writer import BagError, jazzy_typestore
 from softshape_ros.data.dataset import DatasetWriter
 from softshape_ros.scene import Scene, SceneError
-from softshape_ros.vision.preprocess import ImageError, preprocess, scale_crop
-
-_CHANNELS = {'mono8': 1, 'rgb8': 3, 'bgr8': 3}
-
-
-def _ns(stamp) -> int:
-    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
-
-
-def decode_image(msg) -> np.ndarray:
-    """Decode a rosbags sensor_msgs/Image to H x W (x 3 RGB) uint8; ValueError if malformed."""
-    ch = _CHANNELS.get(msg.encoding)
-    if ch is None:
-        raise ValueError(f'unsupported encoding {msg.encoding!r}')
-    row = msg.width * ch
-    data = np.asarray(msg.data, dtype=np.uint8)
-    if msg.height == 0 or msg.step < row or data.size < msg.step * msg.height:
-        raise ValueError(f'{msg.width}x{msg.height} {msg.encoding}: step {msg.step} and '
-                         f'{data.size} bytes do not match')
-    a = data[: msg.step * msg.height].reshape(msg.height, msg.step)[:, :row]
-    if ch == 1:
-        return a
-    a = a.reshape(msg.height, msg.width, 3)
-    return a[:, :, ::-1] if msg.encoding == 'bgr8' else a
+from softshape_ros.vision.image_msg import decode_image, stamp_ns
+from softshape_ros.vision.preprocess import ImageError, crop_for, preprocess
 
 
 class _Session:
@@ -95,7 +73,7 @@ def _read_bag(path: Path, cfg, gray: bool, size: int, progress: bool) -> _Sessio
                     s.bad_samples += 1
                 continue
             if role == 'trigger':
-                s.triggers.add(_ns(msg.stamp))
+                s.triggers.add(stamp_ns(msg.stamp))
             elif role == 'sample':
                 _add_sample(s, msg.data)
             elif role == 'scene':
@@ -105,20 +83,17 @@ def _read_bag(path: Path, cfg, gray: bool, size: int, progress: bool) -> _Sessio
                 except SceneError:
                     pass
             elif role == 'capture':
-                s.capture[cam][_ns(msg.header.stamp)] = _ns(msg.time_ref)
+                s.capture[cam][stamp_ns(msg.header.stamp)] = stamp_ns(msg.time_ref)
             elif role == 'pressure':
                 p = _pressure(msg, names)
                 if p is not None:
-                    s.pressure.append((_ns(msg.header.stamp), p))
+                    s.pressure.append((stamp_ns(msg.header.stamp), p))
             elif role == 'image':
-                stamp = _ns(msg.header.stamp)
+                stamp = stamp_ns(msg.header.stamp)
                 cc = cfg.cameras[cam]
                 try:
-                    img = decode_image(msg)
-                    crop = cc.crop_px
-                    if (msg.width, msg.height) != (cc.width, cc.height):
-                        crop = scale_crop(crop, (cc.width, cc.height), (msg.width, msg.height))
-                    s.images[cam][stamp].append(preprocess(img, crop, size, gray))
+                    crop = crop_for(cc, msg.width, msg.height)
+                    s.images[cam][stamp].append(preprocess(decode_image(msg), crop, size, gray))
                 except (ValueError, ImageError):
                     s.bad_images[cam].add(stamp)
         bar.close()

@@ -117,6 +117,27 @@ class Recording:
         return self.writer.close()
 
     # -- the writer thread --------------------------------------------------------------
+    def _handle(self, item, oldest_unflushed):
+        """Write one queue item; return the receive time of the oldest unflushed message."""
+        if item is None:
+            pass
+        elif item[0] == 'msg':
+            _, topic, stamp, data, t_recv = item
+            if self.writer.write(topic, stamp, data) and oldest_unflushed is None:
+                oldest_unflushed = t_recv
+        elif item[0] == 'topic':
+            self.writer.add_topic(item[1])
+        elif item[0] == 'split':
+            self.writer.split()
+            oldest_unflushed = None
+        # Flush when the oldest unflushed message has waited half the interval: the
+        # other half covers writing, so the loss bound holds from receive time.
+        if oldest_unflushed is not None and \
+                time.monotonic() >= oldest_unflushed + self.flush_interval_s / 2:
+            self.writer.flush()
+            oldest_unflushed = None
+        return oldest_unflushed
+
     def _run(self) -> None:
         oldest_unflushed = None
         while True:
@@ -133,23 +154,13 @@ class Recording:
                 item = self._q.popleft() if self._q else None
                 if item is not None and item[0] == 'msg':
                     self._q_bytes -= len(item[3])
-            if item is None:
-                pass
-            elif item[0] == 'msg':
-                _, topic, stamp, data, t_recv = item
-                if self.writer.write(topic, stamp, data) and oldest_unflushed is None:
-                    oldest_unflushed = t_recv
-            elif item[0] == 'topic':
-                self.writer.add_topic(item[1])
-            elif item[0] == 'split':
-                self.writer.split()
-                oldest_unflushed = None
-            # Flush when the oldest unflushed message has waited half the interval: the
-            # other half covers writing, so the loss bound holds from receive time.
-            if oldest_unflushed is not None and \
-                    time.monotonic() >= oldest_unflushed + self.flush_interval_s / 2:
-                self.writer.flush()
-                oldest_unflushed = None
+            try:
+                oldest_unflushed = self._handle(item, oldest_unflushed)
+            except Exception as exc:  # never die silently: fail loudly, keep what is written
+                with self._cv:
+                    self.error = self.error or f'writer: {type(exc).__name__}: {exc}'
+                    self._q.clear()
+                    self._q_bytes = 0
             if self.writer.failed and not self.error:
                 with self._cv:
                     self.error = self.writer.failed

@@ -15,7 +15,7 @@ import numpy as np
 
 from softshape_ros.config import RigConfig
 from softshape_ros.hardware.pressure import CommandError, check_command
-from softshape_ros.vision.preprocess import preprocess, scale_crop
+from softshape_ros.vision.preprocess import crop_for, preprocess
 
 
 class PredictionError(ValueError):
@@ -51,11 +51,7 @@ class InferenceCore:
 
     def prepare(self, view: str, frame: np.ndarray) -> np.ndarray:
         """Camera frame -> C x S x S exactly as the dataset builder prepares it."""
-        cam = self.cfg.cameras[view]
-        h, w = frame.shape[:2]
-        crop = cam.crop_px
-        if (w, h) != (cam.width, cam.height):
-            crop = scale_crop(crop, (cam.width, cam.height), (w, h))
+        crop = crop_for(self.cfg.cameras[view], frame.shape[1], frame.shape[0])
         return preprocess(frame, crop, size=self.size, gray=self.gray)
 
     def set_initial(self, view: str, frame: np.ndarray) -> None:

@@ -24,6 +24,7 @@ from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityP
 from sensor_msgs.msg import Image
 
 from softshape_ros.config import RigConfig, load_rig_config
+from softshape_ros.vision.image_msg import ENCODINGS, decode_image, stamp_ns
 
 #: The sensor-data profile (best effort, keep last 5), DESIGN.md's choice for images.
 SENSOR_QOS = qos_profile_sensor_data
@@ -51,15 +52,12 @@ def declare_rig_config(node: Node) -> RigConfig:
     return load_rig_config(path or None)
 
 
-def stamp_to_ns(stamp: Time) -> int:
-    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+#: Stamp conversion and image decoding are shared with the (rclpy-free) dataset builder.
+stamp_to_ns = stamp_ns
 
 
 def ns_to_stamp(ns: int) -> Time:
     return Time(sec=int(ns // 1_000_000_000), nanosec=int(ns % 1_000_000_000))
-
-
-_ENCODINGS = {'mono8': 1, 'rgb8': 3, 'bgr8': 3}
 
 
 def numpy_to_image(array: np.ndarray, stamp: Time, frame_id: str, encoding: str = '') -> Image:
@@ -71,7 +69,7 @@ def numpy_to_image(array: np.ndarray, stamp: Time, frame_id: str, encoding: str 
         a = a[:, :, 0]
     if not encoding:
         encoding = 'mono8' if a.ndim == 2 else 'rgb8'
-    ch = _ENCODINGS.get(encoding)
+    ch = ENCODINGS.get(encoding)
     if ch is None or (a.ndim == 2) != (ch == 1) or (a.ndim == 3 and a.shape[2] != ch):
         raise ValueError(f'array of shape {a.shape} does not fit encoding {encoding}')
     msg = Image()
@@ -86,20 +84,8 @@ def numpy_to_image(array: np.ndarray, stamp: Time, frame_id: str, encoding: str 
 
 
 def image_to_numpy(msg: Image) -> np.ndarray:
-    """sensor_msgs/Image -> H x W or H x W x 3 RGB uint8; raises ValueError on bad messages."""
-    ch = _ENCODINGS.get(msg.encoding)
-    if ch is None:
-        raise ValueError(f'unsupported image encoding {msg.encoding!r} (use mono8/rgb8/bgr8)')
-    row = msg.width * ch
-    if msg.step < row or len(msg.data) < msg.step * msg.height or msg.height == 0:
-        raise ValueError(f'image {msg.width}x{msg.height} {msg.encoding}: step {msg.step} '
-                         f'and {len(msg.data)} data bytes do not match')
-    buf = np.frombuffer(bytes(msg.data), dtype=np.uint8)[: msg.step * msg.height]
-    a = buf.reshape(msg.height, msg.step)[:, :row]
-    if ch == 1:
-        return a.copy()
-    a = a.reshape(msg.height, msg.width, 3)
-    return a[:, :, ::-1].copy() if msg.encoding == 'bgr8' else a.copy()
+    """sensor_msgs/Image -> H x W or H x W x 3 RGB uint8 (own copy); ValueError if malformed."""
+    return decode_image(msg).copy()
 
 
 def diagnostic_status(name: str, hardware_id: str, level, message: str,
@@ -147,6 +133,9 @@ def run_node(factory: Callable[[], Node], args=None, multithreaded: bool = False
         if node is not None:
             hook = getattr(node, 'on_shutdown', None)
             if hook is not None:
+                # A second Ctrl-C or SIGTERM must not cut a vent or a bag finalisation short.
+                signal.signal(signal.SIGINT, signal.SIG_IGN)
+                signal.signal(signal.SIGTERM, signal.SIG_IGN)
                 try:
                     hook()
                 except Exception as exc:

@@ -24,6 +24,8 @@ from std_srvs.srv import Trigger
 
 from softshape_ros.model.serving import (InferenceCore, LatestSlot, PredictionError, overlay,
                                          to_hwc)
+from softshape_ros.scene import Scene, SceneError
+from softshape_ros.vision.preprocess import crop_for
 from softshape_ros.nodes.common import (ERROR, IMAGE_QOS, LATCHED_QOS, OK, RELIABLE_QOS,
                                         SENSOR_QOS, WARN, declare_rig_config, diagnostic_status,
                                         image_to_numpy, main_wrapper, numpy_to_image,
@@ -84,13 +86,13 @@ class InferenceNode(Node):
     # -- inputs ---------------------------------------------------------------------------
     def on_scene(self, msg: String) -> None:
         try:
-            scene = json.loads(msg.data)
-        except json.JSONDecodeError as exc:
-            self.get_logger().error(f'/rig/scene is not JSON ({exc}); keeping initial images')
+            scene = Scene.from_json(msg.data)
+        except SceneError as exc:
+            self.get_logger().error(f'ignoring /rig/scene: {exc}; keeping initial images')
             return
         self.core.clear_initial()
         self.awaiting_rest = True
-        self.get_logger().info(f'scene {scene.get("id")}: waiting for its rest images')
+        self.get_logger().info(f'scene {scene.id}: waiting for its rest images')
 
     def on_sample(self, msg: String) -> None:
         try:
@@ -160,31 +162,27 @@ class InferenceNode(Node):
             item = self.slot.get(timeout=0.2)
             if item is None:
                 continue
-            pressures, stamp, t0 = item
             try:
-                images = self.core.predict(pressures)
+                self.answer(*item)
             except PredictionError as exc:
                 self.reject(str(exc))
-                continue
             except Exception as exc:  # keep serving; say what failed
-                self.reject(f'model failed: {type(exc).__name__}: {exc}')
-                continue
-            msg_stamp = stamp.to_msg()
-            for v, img in images.items():
-                frame_id = self.cfg.cameras[v].frame_id
-                self.pub_pred[v].publish(numpy_to_image(to_hwc(img), msg_stamp, frame_id))
-                if self.publish_overlay and v in self.latest_frame:
-                    frame = self.latest_frame[v]
-                    cam = self.cfg.cameras[v]
-                    crop = cam.crop_px
-                    if frame.shape[1] != cam.width or frame.shape[0] != cam.height:
-                        from softshape_ros.vision.preprocess import scale_crop
-                        crop = scale_crop(crop, (cam.width, cam.height),
-                                          (frame.shape[1], frame.shape[0]))
-                    self.pub_overlay[v].publish(
-                        numpy_to_image(overlay(frame, img, crop), msg_stamp, frame_id))
-            self.counts['published'] += 1
-            self.latency_ms.append((time.perf_counter() - t0) * 1e3)
+                self.reject(f'prediction failed: {type(exc).__name__}: {exc}')
+
+    def answer(self, pressures, stamp, t0) -> None:
+        """Predict for one request and publish the images and overlays."""
+        images = self.core.predict(pressures)
+        msg_stamp = stamp.to_msg()
+        for v, img in images.items():
+            frame_id = self.cfg.cameras[v].frame_id
+            self.pub_pred[v].publish(numpy_to_image(to_hwc(img), msg_stamp, frame_id))
+            frame = self.latest_frame.get(v)
+            if self.publish_overlay and frame is not None:
+                crop = crop_for(self.cfg.cameras[v], frame.shape[1], frame.shape[0])
+                self.pub_overlay[v].publish(
+                    numpy_to_image(overlay(frame, img, crop), msg_stamp, frame_id))
+        self.counts['published'] += 1
+        self.latency_ms.append((time.perf_counter() - t0) * 1e3)
 
     def report(self) -> None:
         lat = np.asarray(self.latency_ms) if self.latency_ms else np.zeros(1)

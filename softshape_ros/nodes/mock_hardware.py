@@ -184,13 +184,22 @@ class MockHardware(Node):
                 self.get_logger().error(f'simulator failed at {list(pressures)} Pa: {exc}; '
                                         'no images for this trigger')
                 continue
-            for cam in self.cfg.camera_names:
-                frame_id = self.cfg.cameras[cam].frame_id
-                self.pub_image[cam].publish(numpy_to_image(images[cam], stamp, frame_id))
-                self.pub_info[cam].publish(
-                    camera_info_msg(self.calibrations[cam], stamp, frame_id))
-                self.pub_time[cam].publish(
-                    time_reference_msg(stamp, sampled_ns, cam, frame_id))
+            except Exception as exc:  # keep the worker alive and say what happened
+                self.solver_errors += 1
+                self.last_error = f'{type(exc).__name__}: {exc}'
+                self.get_logger().error(f'snap failed: {self.last_error}; no images')
+                continue
+            try:
+                for cam in self.cfg.camera_names:
+                    frame_id = self.cfg.cameras[cam].frame_id
+                    self.pub_image[cam].publish(numpy_to_image(images[cam], stamp, frame_id))
+                    self.pub_info[cam].publish(
+                        camera_info_msg(self.calibrations[cam], stamp, frame_id))
+                    self.pub_time[cam].publish(
+                        time_reference_msg(stamp, sampled_ns, cam, frame_id))
+            except Exception as exc:  # e.g. publishing while the context shuts down
+                self.last_error = f'publish failed: {exc}'
+                continue
             self.frames += 1
 
     def _publish_diagnostics(self) -> None:

@@ -54,6 +54,13 @@ def preprocess(image: np.ndarray, crop_px, size: int = 64, gray: bool = True) ->
     return np.ascontiguousarray(out.transpose(2, 0, 1))
 
 
+def crop_for(camera, width: int, height: int) -> list:
+    """Return the camera's configured crop, scaled when the frame has another resolution."""
+    if (width, height) == (camera.width, camera.height):
+        return list(camera.crop_px)
+    return scale_crop(camera.crop_px, (camera.width, camera.height), (width, height))
+
+
 def scale_crop(crop_px, configured_wh, actual_wh):
     """Scale a crop defined at the configured resolution to a frame of another size."""
     cw, ch = configured_wh
