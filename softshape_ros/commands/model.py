@@ -68,7 +68,8 @@ def _reproduce(args) -> int:
                       max_steps=args.max_steps, patience=args.patience,
                       eval_every=args.eval_every, threads=args.threads)
     table = reproduce(args.dataset, args.out, cfg, work=args.work, fig4c=not args.no_fig4c,
-                      splits=args.splits.split(','))
+                      splits=args.splits.split(','), views=args.views.split(','),
+                      archs=args.archs.split(','))
     sys.stdout.write(table)
     return 0
 
@@ -118,5 +119,7 @@ def register(sub) -> None:
     p.add_argument('--threads', type=int, default=0)
     p.add_argument('--splits', default='random,scene',
                    help='train only these splits here (the table uses all cached runs)')
+    p.add_argument('--views', default='mono,stereo', help='train only these views here')
+    p.add_argument('--archs', default='paper,ours', help='train only these networks here')
     p.add_argument('--no-fig4c', action='store_true', help='skip the object-distance check')
     p.set_defaults(func=_reproduce)

@@ -90,12 +90,13 @@ def _fit_and_score(ds, rows, test, tc, ckpt, sil, desc) -> dict:
 
 
 def reproduce(dataset, out, cfg: ReproConfig | None = None, work=None, fig4c: bool = True,
-              splits=SPLITS) -> str:
+              splits=SPLITS, views=VIEWS, archs=ARCHS) -> str:
     """
     Run (or resume) the grid; write table.md, results.json and figures to ``out``.
 
-    Only ``splits`` are trained here (two processes can share the grid, one split each);
-    the table and figures use every cached run of this dataset and budget.
+    Only ``splits`` x ``views`` x ``archs`` are trained here (two processes can share the
+    grid, one split each); the table and figures use every cached run of this dataset and
+    budget.
     """
     cfg = cfg or ReproConfig()
     full = load_dataset(dataset)
@@ -109,29 +110,30 @@ def reproduce(dataset, out, cfg: ReproConfig | None = None, work=None, fig4c: bo
     sils['mono'] = RobotSilhouette(sils['stereo'].threshold, sils['stereo'].base_rc[:1])
     planned = plan(full, cfg)
     grid = [(sp, v, a, s) for sp in SPLITS for s in cfg.sizes for v in VIEWS for a in ARCHS]
-    grid.sort(key=lambda g: g[0] not in splits)
+    wanted = set(splits) | set(views) | set(archs)
+    grid.sort(key=lambda g: not {g[0], g[1], g[2]} <= wanted)
     stamp = hashlib.sha256(json.dumps([dataclasses.asdict(cfg), str(full.path), len(full)])
                            .encode()).hexdigest()[:12]
     results = {}
     bar = tqdm(grid, desc='reproduce', dynamic_ncols=True)
-    for split, views, arch, size in bar:
-        key = _key(split, views, arch, size)
+    for split, view, arch, size in bar:
+        key = _key(split, view, arch, size)
         cache = out / 'runs' / f'{key}.json'
         if cache.exists():
             cached = json.loads(cache.read_text())
             if cached.get('stamp') == stamp:
                 results[key] = cached
                 continue
-        if split not in splits:
+        if not {split, view, arch} <= wanted:
             continue
         bar.set_postfix_str(key)
         test, train_rows = planned[split]
         tc = TrainConfig(arch=arch, seed=cfg.seed, split=split, max_steps=cfg.max_steps,
                          eval_every=cfg.eval_every, patience=cfg.patience,
                          threads=cfg.threads)
-        m = _fit_and_score(sets[views], train_rows[size], test, tc, work / key,
-                           sils[views], key)
-        m.update(stamp=stamp, split=split, views=views, arch=arch, size=size,
+        m = _fit_and_score(sets[view], train_rows[size], test, tc, work / key,
+                           sils[view], key)
+        m.update(stamp=stamp, split=split, views=view, arch=arch, size=size,
                  test_rows=int(len(test)), checkpoint=str(work / key))
         cache.write_text(json.dumps(m, indent=2))
         results[key] = m
@@ -143,10 +145,10 @@ def reproduce(dataset, out, cfg: ReproConfig | None = None, work=None, fig4c: bo
     table = write_table(results, cfg, out / 'table.md', full)
     rmse_figure(results, cfg, out / 'rmse_vs_size.png')
     biggest = max(cfg.sizes)
-    for views in VIEWS:
+    for view in VIEWS:
         test = planned['scene'][0]
         pick = test[np.linspace(0, len(test) - 1, 4).astype(int)]
-        panels_figure(sets[views], pick, work, biggest, views, out / f'panels_{views}.png')
+        panels_figure(sets[view], pick, work, biggest, view, out / f'panels_{view}.png')
     if fig4c:
         try:
             distance_check(work / _key('random', 'stereo', 'ours', biggest), full,
