@@ -15,6 +15,8 @@ import sys
 import time
 from pathlib import Path
 
+import yaml
+
 PACKAGE = 'softshape_ros'
 
 
@@ -43,7 +45,8 @@ def ros_param(value) -> str:
     if isinstance(value, (list, tuple)):
         return '[' + ', '.join(ros_param(v) for v in value) + ']'
     if isinstance(value, str):
-        return value if value else "''"
+        # Quote what YAML would read as another type ('1', 'true', '') so it stays a string.
+        return value if value and isinstance(yaml.safe_load(value), str) else f"'{value}'"
     return repr(value)
 
 

@@ -13,8 +13,14 @@ os.environ.setdefault('PYTHONUNBUFFERED', '1')
 import pytest  # noqa: E402
 
 
+#: Waits return as soon as their condition holds; on a loaded CI machine they may take longer
+#: than on a quiet one, so every timeout is stretched by this factor (failures take longer).
+TIMEOUT_SCALE = float(os.environ.get('SOFTSHAPE_TEST_TIMEOUT_SCALE', '3'))
+
+
 def wait_for(predicate, timeout: float = 10.0, period: float = 0.01, what: str = 'condition'):
     """Poll ``predicate`` until true; fail the test with ``what`` on timeout."""
+    timeout *= TIMEOUT_SCALE
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         value = predicate()

@@ -112,7 +112,8 @@ def test_sigkill_then_recover_keeps_everything_older_than_flush_interval(ros, tm
     assert r.returncode == 0, r.stderr
     assert 'unfinished: finalised' in r.stdout or storage == 'sqlite3'
     meta, ids = read_frame_ids(bag, '/kill/seq')
-    must = [i for i, t in enumerate(sent) if t < t_kill - flush_s]
+    # The bound holds from receive time; allow 0.5 s of delivery delay on a loaded machine.
+    must = [i for i, t in enumerate(sent) if t < t_kill - flush_s - 0.5]
     assert len(must) > 100
     assert set(must) <= set(ids), f'lost {sorted(set(must) - set(ids))[:10]}...'
     assert ids == sorted(ids) and len(set(ids)) == len(ids)

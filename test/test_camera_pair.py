@@ -19,7 +19,8 @@ def start_camera(camera, source, fps):
     return subprocess.Popen(
         [sys.executable, '-c', code, '--ros-args', '-r', f'__node:=camera_{camera}',
          '-p', f'camera_name:={camera}', '-p', f'source:={source}', '-p', f'fps:={fps}',
-         '-p', 'diagnostics_period_s:=0.5'],
+         '-p', 'diagnostics_period_s:=0.5',
+         '-p', 'max_trigger_age_s:=10.0'],      # a loaded CI machine delivers late
         env=dict(os.environ), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
 

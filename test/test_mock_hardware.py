@@ -79,7 +79,7 @@ def test_commands_are_validated_clamped_and_followed(ros):
 
 def test_watchdog_vents_and_noise_options(ros):
     probe = Probe(ros)
-    mock = _mock(ros, command_timeout_s=0.3, pressure_noise_pa=500.0)
+    mock = _mock(ros, command_timeout_s=1.5, pressure_noise_pa=500.0)
     ros.wait_for(lambda: probe.cmd.get_subscription_count(), what='discovery')
     probe.send([50000.0] * 6)
     ros.wait_for(lambda: probe.last() is not None and probe.last().min() > 40000,

@@ -111,7 +111,7 @@ def test_tracks_commands_rejects_bad_ones_and_serves_vent_and_enable(ros, vdue):
     step = next(a for a in vdue.applied() if a.setpoints_pa == tuple(cmd))
     mono_to_ros = time.time() - time.monotonic()
     t_apply = step.t + mono_to_ros
-    tau, slack, checked = vdue.tau_s, 0.004, 0
+    tau, slack, checked = vdue.tau_s, 0.015, 0      # slack: scheduling on a busy CI machine
     for m in list(c.measured):
         ts = m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec - t_apply
         if not 0.0 < ts < 0.3:

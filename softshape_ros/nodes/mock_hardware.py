@@ -46,7 +46,7 @@ class MockHardware(Node):
         self.pressure_noise_pa = float(par('pressure_noise_pa', 0.0).value)
         image_noise_std = float(par('image_noise_std', 0.0).value)
         seed = int(par('seed', 0).value)
-        self.command_timeout_s = float(par('command_timeout_s', 0.0).value)
+        self.command_timeout_s = float(par('command_timeout_s', 3.0).value)
         max_queue = int(par('max_pending_triggers', 8).value)
         if rate <= 0 or tau_s < 0 or self.pressure_noise_pa < 0 or image_noise_std < 0:
             raise ValueError('publish_rate_hz must be > 0 and tau_s, pressure_noise_pa, '
