@@ -34,7 +34,7 @@ class DemoSettings:
     scenes: int = 10
     actuations: int = 30
     rate_hz: float = 2.0
-    max_steps: int = 1500
+    max_steps: int = 300
     threads: int = 2
     live_scenes: int = 2
     live_commands: int = 8
