@@ -180,3 +180,24 @@ def test_launch_file_names_only_installed_executables_and_parameter_files(launch
         unknown = set(values) - declared
         assert not unknown, (f'{launch.name}: {name} sets {sorted(unknown)}, which its '
                              f'parameter file does not declare')
+
+
+def test_readme_node_table_matches_nodes_and_parameter_files():
+    import re
+    import yaml
+    text = (ROOT / 'README.md').read_text()
+    table = text[text.index('<!-- nodes-table'):]
+    table = table[:table.index('\n\n')]
+    rows = {}
+    for line in table.splitlines()[1:]:
+        cells = [c.strip() for c in line.strip('|').split('|')]
+        rows[cells[0].split()[0]] = cells[-1]
+    assert sorted(rows) == NODES, 'README nodes table and softshape_ros/nodes/ differ'
+    for node, params_cell in rows.items():
+        (params,) = yaml.safe_load(
+            (ROOT / 'config' / 'params' / f'{node}.yaml').read_text()).values()
+        declared = set(params['ros__parameters'])
+        source = (ROOT / PKG / 'nodes' / f'{node}.py').read_text()
+        for name in re.findall(r'(?:^|, )([a-z][a-z0-9_]+)', re.sub(r'\([^)]*\)', '', params_cell)):
+            assert name in declared or f"'{name}'" in source, (
+                f'README lists parameter {name!r} of {node}, which it does not declare')
