@@ -198,6 +198,7 @@ def test_readme_node_table_matches_nodes_and_parameter_files():
             (ROOT / 'config' / 'params' / f'{node}.yaml').read_text()).values()
         declared = set(params['ros__parameters'])
         source = (ROOT / PKG / 'nodes' / f'{node}.py').read_text()
-        for name in re.findall(r'(?:^|, )([a-z][a-z0-9_]+)', re.sub(r'\([^)]*\)', '', params_cell)):
+        listed = re.sub(r'\([^)]*\)', '', params_cell)           # drop explanations
+        for name in re.findall(r'(?:^|, )([a-z][a-z0-9_]+)', listed):
             assert name in declared or f"'{name}'" in source, (
                 f'README lists parameter {name!r} of {node}, which it does not declare')
