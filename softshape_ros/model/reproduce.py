@@ -146,9 +146,16 @@ def reproduce(dataset, out, cfg: ReproConfig | None = None, work=None, fig4c: bo
     rmse_figure(results, cfg, out / 'rmse_vs_size.png')
     biggest = max(cfg.sizes)
     for view in VIEWS:
-        test = planned['scene'][0]
+        # Unseen scenes if that split was trained here, else the random split's test rows.
+        split = next((sp for sp in ('scene', 'random')
+                      if (work / _key(sp, view, 'ours', biggest) / 'config.json').exists()),
+                     None)
+        if split is None:
+            continue
+        test = planned[split][0]
         pick = test[np.linspace(0, len(test) - 1, 4).astype(int)]
-        panels_figure(sets[view], pick, work, biggest, view, out / f'panels_{view}.png')
+        panels_figure(sets[view], pick, work, biggest, view, split,
+                      out / f'panels_{view}.png')
     if fig4c:
         try:
             distance_check(work / _key('random', 'stereo', 'ours', biggest), full,
@@ -219,20 +226,21 @@ def rmse_figure(results, cfg, path) -> None:
     plt.close(fig)
 
 
-def panels_figure(ds, rows, work, size, views, path) -> None:
-    """Fig. 4(a)/(b): held-out-scene predictions of paper and ours at the largest size."""
+def panels_figure(ds, rows, work, size, views, split, path) -> None:
+    """Fig. 4(a)/(b): test-set predictions of paper and ours at the largest size."""
     initial, target = np.asarray(ds.initial[rows]), np.asarray(ds.target[rows])
     preds, labels = [], []
     for arch in ARCHS:
-        ck = work / _key('scene', views, arch, size)
+        ck = work / _key(split, views, arch, size)
         if not (ck / 'config.json').exists():
             return
         preds.append(predict_rows(Predictor.from_checkpoint(ck), ds, rows))
         labels += [f'{arch} #{r}' for r in rows]
     n = len(rows)
+    where = 'unseen scenes' if split == 'scene' else 'held-out rows'
     prediction_panels(np.concatenate([initial] * 2), np.concatenate([target] * 2),
                       np.concatenate(preds), list(ds.views), path,
-                      title=f'{views}, {size} training samples, unseen scenes '
+                      title=f'{views}, {size} training samples, {where} '
                             f'(top {n} rows: paper, bottom {n}: ours)', row_labels=labels)
 
 
