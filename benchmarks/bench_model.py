@@ -3,7 +3,8 @@ Forward model: batch-1 inference latency on one CPU thread and training throughp
 
 Latency is ``Predictor.predict`` end to end (uint8 images + Pa in, uint8 out), stereo gray,
 for both networks, plus the exported ONNX graph under onnxruntime (one thread). Throughput
-is Adam steps at the paper's batch of 256 on the synthetic stand-in data.
+is Adam steps at the paper's batch of 256 on the synthetic stand-in data, one thread (the
+setting of the reproduction; two threads swing wildly when other work shares the cores).
 """
 
 import tempfile
@@ -34,7 +35,8 @@ def _latency(fn, n=300, warm=20) -> dict:
 def run() -> dict:
     out = {}
     initial, target, pressure, _ = make_samples(256, 16, views=('main', 'side'), seed=0)
-    threads = torch.get_num_threads()
+    threads = 1     # training throughput on one thread: steadier on a shared machine
+    restore = torch.get_num_threads()
     with tempfile.TemporaryDirectory() as tmp:
         for arch in ('paper', 'ours'):
             torch.manual_seed(0)
@@ -73,4 +75,5 @@ def run() -> dict:
                                                         (time.perf_counter() - t0), 1)
             res['train_threads'] = threads
             out[arch] = res
+    torch.set_num_threads(restore)
     return out

@@ -54,7 +54,7 @@ class Predictor:
         p = check_command(pressures, self.max_pressure_pa).pressures_pa
         return (p / self.max_pressure_pa).astype(np.float32)
 
-    @torch.no_grad()
+    @torch.inference_mode()
     def predict_batch(self, initial_b, pressures_b) -> np.ndarray:
         """B x V x C x S x S uint8 + B x 6 Pa -> B x V x C x S x S uint8."""
         imgs = self._images(initial_b, batch=True)
