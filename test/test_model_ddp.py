@@ -55,3 +55,21 @@ def test_ddp_two_processes_end_with_identical_weights(tmp_path):
     torch.manual_seed(2)
     start = build_network('ours', 2, 1).state_dict()
     assert max(float((start[k] - r0[k]).abs().max()) for k in r0) > 1e-3
+
+
+def test_softshape_train_cli_runs_unchanged_under_torchrun(tmp_path):
+    ds = make_dataset(tmp_path / 'ds', 40, 4, views=('main',), seed=5)
+    softshape = Path(sys.executable).with_name('softshape')
+    proc = subprocess.run(
+        [str(TORCHRUN), '--standalone', '--nnodes', '1', '--nproc_per_node', '2',
+         str(softshape), 'train', '--dataset', str(ds.path), '--out', str(tmp_path / 'ck'),
+         '--max-steps', '4', '--eval-every', '2', '--batch-size', '8', '--threads', '1',
+         '--quiet'],
+        env=dict(os.environ, OMP_NUM_THREADS='1'), capture_output=True, text=True,
+        timeout=240)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    lines = [ln for ln in proc.stdout.splitlines() if ln.startswith('{')]
+    assert len(lines) == 1                      # rank 0 reports, rank 1 stays quiet
+    assert json.loads(lines[0])['steps'] == 4
+    _, cfg = load_checkpoint(tmp_path / 'ck')
+    assert cfg['training']['world_size'] == 2
