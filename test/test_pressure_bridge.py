@@ -78,8 +78,10 @@ def start_bridge(ros, vd, **params):
     from rclpy.parameter import Parameter
 
     from softshape_ros.nodes.pressure_bridge import PressureBridge
+    # The virtual Due runs as a thread of this test process, which a busy machine can leave
+    # unscheduled for 1-2 s: link timeout and firmware watchdog leave room for that.
     p = {'port': vd.path, 'max_pressure_pa': PARAM_LIMITS, 'watchdog_timeout_s': 30.0,
-         'firmware_watchdog_s': 1.0, 'link_timeout_s': 1.0, 'diagnostics_period_s': 0.2}
+         'firmware_watchdog_s': 3.0, 'link_timeout_s': 3.0, 'diagnostics_period_s': 0.2}
     p.update(params)
     node = ros.add(PressureBridge(parameter_overrides=[Parameter(k, value=v)
                                                        for k, v in p.items()]))
@@ -126,7 +128,7 @@ def test_tracks_commands_rejects_bad_ones_and_serves_vent_and_enable(ros, vdue):
     assert list(m.name) == NAMES
     stamp = m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec
     now = node.get_clock().now().nanoseconds * 1e-9
-    assert now - 1.0 < stamp <= now          # sampled recently, never in the future
+    assert now - 5.0 < stamp <= now          # sampled recently (busy CI: 5 s), never in the future
     assert vdue.applied()[-1].setpoints_pa == tuple(cmd)
 
     # bad commands: nothing reaches the hardware; reasons are kept for diagnostics
@@ -164,9 +166,14 @@ def test_tracks_commands_rejects_bad_ones_and_serves_vent_and_enable(ros, vdue):
     c.command(cmd)
     ros.wait_for(lambda: 'disabled' in node.last_reject, 5, what='disabled rejection')
     assert len(vdue.applied()) == n
+    rejected_before_reenable = node.counts['rejected']
     assert c.call(c.enable, c.SetBool.Request(data=True)).success
-    c.command([1000] * 6)
-    ros.wait_for(lambda: vdue.applied()[-1].setpoints_pa == (1000,) * 6, 5, what='re-enabled')
+    # Resend until applied: on a loaded machine the link may be reconnecting for a moment,
+    # and a command sent then is (rightly) not applied; it must never be refused as disabled.
+    ros.wait_for(lambda: (c.command([1000] * 6), time.sleep(0.1),
+                          vdue.applied()[-1].setpoints_pa == (1000,) * 6)[2], 5,
+                 what='re-enabled')
+    assert node.counts['rejected'] == rejected_before_reenable
 
 
 def test_watchdog_vents_when_commands_stop(ros, vdue):
@@ -240,7 +247,7 @@ def test_faults_never_let_anything_but_commanded_values_through(ros, vdue):
     ros.wait_for(lambda: vdue.applied()[-1].setpoints_pa == tuple(fresh), 5, what='fresh')
 
     # stall: the host sees silence, drops and re-opens the link, and recovers
-    vdue.stall(2.0)
+    vdue.stall(5.0)                                  # longer than the 3 s link timeout
     ros.wait_for(lambda: not node.link.connected, 5, what='stall detected')
     ros.wait_for(lambda: node.link.connected, 10, what='recovered after stall')
     c.command(fresh)

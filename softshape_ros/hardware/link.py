@@ -243,7 +243,8 @@ class DueLink:
         backoff = self.backoff_s[0]
         while not self._stop.is_set():
             try:
-                ser = serial.Serial(self.port, self.baud, timeout=0.01, write_timeout=0.5)
+                ser = serial.Serial(self.port, self.baud, timeout=0.01,
+                                    write_timeout=max(0.5, self.stale_timeout_s))
             except (serial.SerialException, OSError, ValueError) as exc:
                 self._down(f'cannot open {self.port}: {exc}', 'error_once')
                 self._stop.wait(backoff)

@@ -50,6 +50,7 @@ class PressureBridge(Node):
         state_rate = int(par('state_rate_hz', 100).value)
         diag_period = float(par('diagnostics_period_s', 1.0).value)
         self.frame_id = str(par('frame_id', 'due').value)
+        self.ack_wait_s = link_timeout_s     # as long as silence takes to count as link loss
         # The firmware's CONFIG frame carries these as u16; check them here with a clear message.
         for name, value, lo, hi in (('firmware_watchdog_s', fw_watchdog_s, 0.02, 10.0),
                                     ('state_rate_hz', state_rate, 1, 1000),
@@ -139,10 +140,11 @@ class PressureBridge(Node):
     def _vent(self, why: str) -> tuple[bool, str]:
         self.active = False
         try:
-            ok = self.link.wait_ack(self.link.vent(), 0.5)
+            ok = self.link.wait_ack(self.link.vent(), self.ack_wait_s)
         except LinkDown as exc:
             return False, f'{why}: cannot vent, {exc} (the firmware watchdog vents on its own)'
-        return ok, f'{why}: vented' if ok else f'{why}: vent sent, not acknowledged in 0.5 s'
+        return ok, (f'{why}: vented' if ok else
+                    f'{why}: vent sent, not acknowledged in {self.ack_wait_s} s')
 
     def _watchdog(self) -> None:
         self.link.kick()        # the executor is alive: heartbeats may keep the firmware fed
