@@ -54,10 +54,6 @@ class RobotConfig:
     base_rpy_rad: list[float] = field(metadata=_num(length=3))
 
     @property
-    def shear_modulus_pa(self) -> float:
-        return self.youngs_modulus_pa / (2.0 * (1.0 + self.poisson_ratio))
-
-    @property
     def total_length_m(self) -> float:
         return sum(s.length_m for s in self.segments)
 

@@ -7,6 +7,7 @@ sketch against declarations of the Arduino calls it uses (no ARM toolchain here)
 """
 
 import json
+import os
 import shutil
 import subprocess
 from pathlib import Path
@@ -18,7 +19,9 @@ FW = ROOT / 'firmware'
 VECTORS = json.loads((Path(__file__).parent / 'data' / 'protocol_vectors.json').read_text())
 GXX = shutil.which('g++')
 
-pytestmark = pytest.mark.skipif(GXX is None, reason='g++ not installed')
+# A developer machine without g++ skips; CI (CI=true) must compile the firmware core.
+pytestmark = pytest.mark.skipif(GXX is None and not os.environ.get('CI'),
+                                reason='g++ not installed')
 
 
 @pytest.fixture(scope='module')

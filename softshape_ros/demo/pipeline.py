@@ -170,7 +170,7 @@ def live(settings: DemoSettings, stage: Stage, cfg, checkpoint: Path) -> dict:
     from softshape_ros.model.metrics import yellow_mask
     from tqdm import tqdm
     root = stage.root
-    logs = root / 'logs'
+    logs = root / 'logs' / 'live'      # the record stage's node logs stay in logs/
     scenes = write_session(cfg, root / 'live_session.yaml', settings.live_scenes, 0,
                            settings.seed + 1000, first_id=1000)
     rng = np.random.default_rng(settings.seed + 2000)

@@ -263,11 +263,6 @@ _LAYOUTS = {
 }
 
 
-def payload_size(ftype: int) -> int:
-    """Return the exact payload length of a known frame type."""
-    return struct.calcsize(_LAYOUTS[ftype][1])
-
-
 def decode(frame: Frame):
     """Turn a CRC-checked frame into its message; DecodeError if type or length is wrong."""
     entry = _LAYOUTS.get(frame.type)

@@ -32,10 +32,6 @@ class Obstacle:
         d, n = self._sdf(pl)
         return d, n @ self.R.T
 
-    def hessian(self, p: np.ndarray, eps: float = 1e-6) -> np.ndarray:
-        """Return the distance Hessian (P, 3, 3) by central differences of the gradient."""
-        return self.sdf_hessian(p, eps)[2]
-
     def sdf_hessian(self, p: np.ndarray, eps: float = 1e-6):
         """Return distance (P,), gradient (P, 3) and Hessian (P, 3, 3) in one evaluation."""
         p = np.atleast_2d(p)

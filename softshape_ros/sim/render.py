@@ -9,7 +9,6 @@ and the background light, so the three stay apart in gray (the model learns from
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 
 from softshape_ros.sim.camera import PinholeCamera
@@ -102,8 +101,3 @@ def render_view(camera: PinholeCamera, centres: np.ndarray, radii: np.ndarray, o
 def to_uint8(img: np.ndarray) -> np.ndarray:
     """Convert a [0, 1] float image to uint8 (rounded)."""
     return np.clip(np.rint(img * 255.0), 0, 255).astype(np.uint8)
-
-
-def area_downsample(img_u8: np.ndarray, size: int) -> np.ndarray:
-    """Area-resize a square uint8 image to size x size (what preprocess does after the crop)."""
-    return cv2.resize(img_u8, (size, size), interpolation=cv2.INTER_AREA)
