@@ -44,7 +44,7 @@ def test_mock_rig_session_to_dataset(ros, tmp_path):
                  timeout=30, what='recorder on the mock topics')
     col = ros.add(Collector(parameter_overrides=_params(
         session_file=str(session), rate_hz=4.0, rest_delay_s=0.1, start_delay_s=1.0,
-        max_fraction=0.5, seed=3)))
+        max_fraction=0.5, seed=3, settle_timeout_s=5.0)))      # 5 s: busy CI machine
     ros.wait_for(col.done.is_set, timeout=90, what='collection session to finish')
     assert col.state == 'done', col.error
     ros.wait_for(lambda: rec.recording.received[main_topic] >= col.samples, timeout=60,
