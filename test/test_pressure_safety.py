@@ -48,3 +48,13 @@ def test_regulator_is_first_order():
     for _ in range(100):
         p = r.step(0.01)
     assert p[0] == pytest.approx(1000.0, rel=1e-4)
+
+
+def test_measured_pressures_are_put_in_config_order_or_refused():
+    from softshape_ros.hardware.pressure import measured_in_order
+    names = ['a', 'b', 'c', 'd', 'e', 'f']
+    assert measured_in_order(names[::-1], [6, 5, 4, 3, 2, 1], names).tolist() == [1, 2, 3, 4, 5, 6]
+    assert measured_in_order([], [1, 2, 3, 4, 5, 6], names).tolist() == [1, 2, 3, 4, 5, 6]
+    assert measured_in_order(names[:5] + ['x'], [1] * 6, names) is None       # unknown name
+    assert measured_in_order(names, [1] * 5, names) is None                   # short
+    assert measured_in_order([], [1, 2, 3, float('nan'), 5, 6], names) is None

@@ -12,7 +12,6 @@ preprocessed as they are read (crop, gray, 64x64), so memory holds only small ar
 from __future__ import annotations
 
 import json
-import math
 from bisect import bisect_left
 from collections import Counter, defaultdict
 from pathlib import Path
@@ -24,6 +23,7 @@ from tqdm import tqdm
 from softshape_ros.data.bag_tools import bag_info
 from softshape_ros.data.bag_writer import BagError, jazzy_typestore
 from softshape_ros.data.dataset import DatasetWriter
+from softshape_ros.hardware.pressure import measured_in_order
 from softshape_ros.scene import Scene, SceneError
 from softshape_ros.vision.image_msg import decode_image, stamp_ns
 from softshape_ros.vision.preprocess import ImageError, crop_for, preprocess
@@ -85,7 +85,7 @@ def _read_bag(path: Path, cfg, gray: bool, size: int, progress: bool) -> _Sessio
             elif role == 'capture':
                 s.capture[cam][stamp_ns(msg.header.stamp)] = stamp_ns(msg.time_ref)
             elif role == 'pressure':
-                p = _pressure(msg, names)
+                p = measured_in_order(msg.name, msg.effort, names)
                 if p is not None:
                     s.pressure.append((stamp_ns(msg.header.stamp), p))
             elif role == 'image':
@@ -115,18 +115,6 @@ def _add_sample(s: _Session, text: str) -> None:
         s.bad_samples += 1
         return
     s.samples[stamp] = sample
-
-
-def _pressure(msg, names):
-    effort = [float(v) for v in msg.effort]
-    if list(msg.name):
-        if sorted(msg.name) != sorted(names) or len(effort) != len(msg.name):
-            return None
-        by = dict(zip(msg.name, effort))
-        effort = [by[n] for n in names]
-    if len(effort) != 6 or not all(math.isfinite(v) for v in effort):
-        return None
-    return effort
 
 
 def _nearest_pressure(s: _Session, stamp: int, bound_ns: int):

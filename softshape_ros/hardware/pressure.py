@@ -48,6 +48,25 @@ def check_command(values, limits_pa) -> CheckedCommand:
     return CheckedCommand(np.minimum(arr, lim), clamped)
 
 
+def measured_in_order(names, effort, chamber_names):
+    """
+    Return measured pressures (JointState name/effort) in config order, or None if unusable.
+
+    Unnamed values are taken in order; named ones must be exactly the configured chambers.
+    Used by the collector (live) and the dataset builder (bags) alike.
+    """
+    values = [float(v) for v in effort]
+    names = list(names)
+    if names:
+        if sorted(names) != sorted(chamber_names) or len(values) != len(names):
+            return None
+        by = dict(zip(names, values))
+        values = [by[n] for n in chamber_names]
+    if len(values) != len(chamber_names) or not all(math.isfinite(v) for v in values):
+        return None
+    return np.asarray(values, dtype=np.float64)
+
+
 class FirstOrderRegulator:
     """
     Proportional pressure regulators as first-order lags (time constant ``tau_s``).

@@ -27,7 +27,7 @@ from sensor_msgs.msg import JointState, TimeReference
 from std_msgs.msg import Float64MultiArray, Header, String
 from std_srvs.srv import Trigger
 
-from softshape_ros.hardware.pressure import CommandError, check_command
+from softshape_ros.hardware.pressure import CommandError, check_command, measured_in_order
 from softshape_ros.nodes.common import (ERROR, LATCHED_QOS, OK, RELIABLE_QOS, WARN,
                                         declare_rig_config, diagnostic_status, main_wrapper,
                                         publish_diagnostics, stamp_to_ns)
@@ -184,20 +184,10 @@ class Collector(Node):
 
     # -- inputs ---------------------------------------------------------------------------
     def _on_measured(self, msg: JointState) -> None:
-        names = list(msg.name)
-        if names and names != self.cfg.chamber_names:
-            try:
-                effort = [msg.effort[names.index(n)] for n in self.cfg.chamber_names]
-            except (ValueError, IndexError):
-                self.get_logger().warning(f'measured pressures with unknown names {names}: '
-                                          'ignored', throttle_duration_sec=5.0)
-                return
-        else:
-            effort = list(msg.effort)
-        a = np.asarray(effort, dtype=np.float64)
-        if a.shape != (len(self.limits),) or not np.all(np.isfinite(a)):
-            self.get_logger().warning(f'malformed measured pressures {effort}: ignored',
-                                      throttle_duration_sec=5.0)
+        a = measured_in_order(msg.name, msg.effort, self.cfg.chamber_names)
+        if a is None:
+            self.get_logger().warning(f'malformed measured pressures {list(msg.name)} '
+                                      f'{list(msg.effort)}: ignored', throttle_duration_sec=5.0)
             return
         with self._cond:
             self._measured = (stamp_to_ns(msg.header.stamp), a)
