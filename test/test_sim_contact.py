@@ -96,3 +96,29 @@ def test_random_actuations_converge_near_objects(kind):
         touched += any(c.gap_m < 0 for c in st.contacts)
         assert st.max_penetration_m < 5e-4 and st.residual < 1e-9
     assert touched >= 1
+
+
+def test_tube_lying_along_the_parallel_cylinder_converges():
+    # Benchmark actuation 59 of 'cylinder near' (bench_sim): the robot lies along the
+    # cylinder, its gap profile is flat and grows minimum-maximum pairs on the way. Counting
+    # gap minima alone, the contact force jumped and the solve raised SolverError.
+    import os
+    from softshape_ros.scene import load_session
+    scene = load_session(os.path.join(os.path.dirname(CFG.source), 'session_sim.yaml'))[0]
+    p = [136173.0463232143, 1210.2161872586948, 147183.47528354256, 22395.595872497142,
+         34654.52502513413, 109744.68528069937]
+    rig = SimRig(CFG)
+    rig.set_scene(scene)
+    st = rig.solve(p)
+    assert st.residual < 1e-9 and st.max_penetration_m < 5e-4
+    assert sum(c.gap_m < 0 for c in st.contacts) >= 2
+    # Balance with every contact term (ridges pull with the force their minima overcount).
+    rod = rig.rod
+    g, J = rod.at(rod.forward(st.q), [c.s_m for c in st.contacts])
+    Q = sum(J[i, 3:, :].T @ (g[i, :3, :3].T @ c.force_n) for i, c in enumerate(st.contacts))
+    free_res = rig.statics.assemble(st.q, st.pressures_pa, []).residual
+    assert np.abs(free_res - Q).max() < 1e-6 * np.abs(free_res).max()
+    # Net push out of the object.
+    obj = obstacle_from_scene(scene)
+    n = obj.sdf(st.backbone_m[None, -1])[1][0]
+    assert sum(c.force_n for c in st.contacts) @ n > 0
