@@ -34,12 +34,15 @@ DEFAULT_SMOOTHING_M = 2.0e-5
 STIFFENING_DEPTH_M = 2.0e-4     # p0: the penalty doubles its stiffness at 0.2 mm
 _NEAR_M = 3e-3          # refine minima of sampled gaps below this (samples <= 4.5 mm apart)
 _SUB = 8                # gap slope samples per node interval (<= 0.6 mm apart)
+STEP_DEPTH_M = 1e-4     # a Newton step may press a free node this deep (linearised)
 _CUTOFF = 30.0          # gaps beyond 30 smoothing lengths carry no force (< 1e-13 k delta)
 # Quintic Hermite basis (rows) in powers of s: control values p0, h p0', h^2 p0'', h^2 p1'',
 # h p1', p1. With the exact curvature at the nodes its minimiser is ~1e-8 m from the rod's.
 _QUINTIC = np.array([[1, 0, 0, -10, 15, -6], [0, 1, 0, -6, 8, -3],
                      [0, 0, 0.5, -1.5, 1.5, -0.5], [0, 0, 0, 0.5, -1, 0.5],
                      [0, 0, 0, -4, 7, -3], [0, 0, 0, 10, -15, 6]], dtype=float)
+_POW = np.arange(6.0)
+_DPOW = np.arange(2.0, 6.0) * np.arange(1.0, 5.0)
 
 
 @dataclass
@@ -88,20 +91,42 @@ class ContactModel:
         self.obstacles = [o for o in obstacles if o is not None]
         self.k, self.delta = float(stiffness), float(smoothing)
 
+    def step_limit(self, rod, kin, move, depth: float = STEP_DEPTH_M) -> float:
+        """
+        Return the largest step fraction that keeps linearised node motion ``move`` (N, 3) out.
+
+        Only nodes now outside are watched (those inside are the contacts the Newton model
+        already carries); a full Newton step from a free or touching shape otherwise
+        swings the rest of the tube deep into the object and the line search backtracks
+        through several assemblies to find out.
+        """
+        pts = kin.g[:, :3, 3]
+        rad = rod.radii[rod.locate(rod.node_X)[0]]
+        alpha = 1.0
+        for obj in self.obstacles:
+            d, n = obj.sdf(pts)
+            gap = d - rad
+            rate = np.einsum('ki,ki->k', n, move)
+            m = (gap > 0) & (rate < 0) & (gap + rate < -depth)
+            if m.any():
+                alpha = min(alpha, float(((gap[m] + depth) / -rate[m]).min()))
+        return alpha
+
     @staticmethod
     def _hermite(X0, h, P0, P1, T0, T1, A0, A1, x):
         """Return p, p', p'' (P, 3) at x of the quintic Hermite backbone on [X0, X0 + h]."""
         s = (x - X0) / h
-        pw = s[:, None] ** np.arange(6)                                  # (P, 6)
-        dpw = np.zeros_like(pw)
-        ddpw = np.zeros_like(pw)
-        dpw[:, 1:] = pw[:, :-1] * np.arange(1, 6)
-        ddpw[:, 2:] = pw[:, :-2] * np.arange(2, 6) * np.arange(1, 5)
+        pw = s[:, None] ** _POW                                          # (P, 6)
         hh = h[:, None]
-        # Control values (P, 6, 3): p0, h p0', h^2 p0'', h^2 p1'', h p1', p1.
-        ctrl = np.stack([P0, T0 * hh, A0 * hh ** 2, A1 * hh ** 2, T1 * hh, P1], axis=1)
-        out = [np.einsum('pk,bk,pbi->pi', w, _QUINTIC, ctrl) for w in (pw, dpw, ddpw)]
-        return out[0], out[1] / hh, out[2] / hh ** 2
+        # Basis weights for p, p', p'' (P, 6 each) on the control values p0, h p0',
+        # h^2 p0'', h^2 p1'', h p1', p1.
+        w = pw @ _QUINTIC.T
+        dw = (pw[:, :5] * _POW[1:]) @ _QUINTIC[:, 1:].T
+        ddw = (pw[:, :4] * _DPOW) @ _QUINTIC[:, 2:].T
+        h2 = hh * hh
+        out = [c[:, 0:1] * P0 + c[:, 1:2] * (T0 * hh) + (c[:, 2:3] * A0 + c[:, 3:4] * A1) * h2
+               + c[:, 4:5] * (T1 * hh) + c[:, 5:6] * P1 for c in (w, dw, ddw)]
+        return out[0], out[1] / hh, out[2] / h2
 
     def find(self, rod, kin):
         """

@@ -181,18 +181,21 @@ class Rod:
              + _C4 * hh[:, :, None] ** 2 * (ad1 @ phi2 - ad2 @ phi1))
         return E, ad_inv_pose(E), dexp_se3(omega) @ S
 
-    def forward(self, q) -> Kinematics:
-        """Run the forward pass: node poses and body Jacobians."""
+    def forward(self, q, jac: bool = True) -> Kinematics:
+        """Run the forward pass: node poses and (if ``jac``) body Jacobians."""
         q = np.asarray(q, dtype=float)
-        E, AdInv, TS = self._magnus(q, self.phi_z1, self.phi_z2, self.int_h)
+        E, AdInv, TS = self._magnus(q, self.phi_z1, self.phi_z2, self.int_h, jac)
         m = len(self.int_h)
         g = np.empty((m + 1, 4, 4))
-        J = np.empty((m + 1, 6, self.n))
         g[0] = self.base
-        J[0] = 0.0
         for k in range(m):
             g[k + 1] = g[k] @ E[k]
-            J[k + 1] = AdInv[k] @ J[k] + TS[k]
+        J = None
+        if jac:
+            J = np.empty((m + 1, 6, self.n))
+            J[0] = 0.0
+            for k in range(m):
+                J[k + 1] = AdInv[k] @ J[k] + TS[k]
         xi_g = self.phi_g @ q + XI_STAR
         return Kinematics(q=q, g=g, J=J, xi_gauss=xi_g)
 

@@ -406,7 +406,12 @@ class Statics:
                 mv = float(np.sqrt((move ** 2).sum(axis=1)).max())
                 if mv > radius:
                     dq *= radius / mv
+                    move *= radius / mv
                     mv = radius
+                if hasattr(contact, 'step_limit'):
+                    cap = contact.step_limit(rod, kin, move)
+                    dq *= cap
+                    mv *= cap
             slope = float(r @ dq)
             w0 = wnorm(asm)
             alpha, accepted = 1.0, False
