@@ -106,3 +106,24 @@ def test_reproduce_writes_table_and_figures_and_resumes(tmp_path):
     # Sizes beyond what the split leaves for training are refused, not silently shrunk.
     with pytest.raises(ValueError, match='need more'):
         reproduce(ds.path, out, ReproConfig(sizes=[500]), fig4c=False)
+
+
+def test_fig4c_distance_check_reports_the_objects_push(tmp_path):
+    """The check's simulated side must show contact near and none far, whatever the model."""
+    from softshape_ros.config import load_rig_config
+    from softshape_ros.model.reproduce import distance_check
+    cfg = load_rig_config()
+    torch.manual_seed(0)
+    ck = save_checkpoint(tmp_path / 'ck', build_network('ours', 2, 1), {
+        'arch': 'ours', 'arch_params': {}, 'views': ['main', 'side'], 'channels': 1,
+        'image_size': 64, 'max_pressure_pa': list(cfg.max_pressures_pa)})
+    res = distance_check(ck, None, tmp_path / 'fig4c.png')
+    rows = res['rows']
+    assert [r['touching'] for r in rows][0] and not rows[-1]['touching']
+    # Far away the simulated tip is where the free shape puts it; near, the cylinder pushes it.
+    assert rows[-1]['tip_shift_px_simulated'] < 1.0
+    assert rows[0]['tip_shift_px_simulated'] > 2.0
+    # An untrained "ours" returns the initial image: its tip never leaves the rest pose.
+    assert all(r['tip_shift_px_predicted'] > 2.0 for r in rows)
+    assert all(np.isfinite(r['rmse']) for r in rows)
+    assert (tmp_path / 'fig4c.png').stat().st_size > 1000
