@@ -54,27 +54,63 @@ def ad_inv_pose(g: np.ndarray) -> np.ndarray:
     return out
 
 
+def _coefficients(th2, tangent: bool):
+    """
+    Return the exp coefficients (a, b, c) and, if ``tangent``, dexp's (f1..f4) of angles^2.
+
+    Closed forms; the series below ``_SMALL`` are evaluated only when such angles occur.
+    """
+    th = np.sqrt(th2)
+    small = th < _SMALL
+    t = np.where(small, 1.0, th) if small.any() else th
+    s, c = np.sin(t), np.cos(t)
+    t2 = t * t
+    t3 = t2 * t
+    out = [s / t, (1 - c) / t2, (t - s) / t3]
+    series = [1 - th2 / 6 + th2 ** 2 / 120, 0.5 - th2 / 24 + th2 ** 2 / 720,
+              1 / 6 - th2 / 120 + th2 ** 2 / 5040]
+    if tangent:
+        ts, tc = t * s, t * c
+        out += [-(4 - 4 * c - ts) / (2 * t2), (4 * t - 5 * s + tc) / (2 * t3),
+                -(2 - 2 * c - ts) / (2 * t2 * t2), (2 * t - 3 * s + tc) / (2 * t3 * t2)]
+        series += [-(0.5 - th2 ** 2 / 720), 1 / 6 - th2 ** 2 / 5040,
+                   -(1 / 24 - th2 / 360 + th2 ** 2 / 13440),
+                   1 / 120 - th2 / 2520 + th2 ** 2 / 120960]
+    if small.any():
+        out = [np.where(small, a, b) for a, b in zip(series, out)]
+    return out
+
+
+def _exp(x, coef):
+    """Return exp(x) (..., 4, 4) from its coefficients (Rodrigues)."""
+    a, b, c = (k[..., None, None] for k in coef[:3])
+    W = skew(x[..., :3])
+    W2 = W @ W
+    out = np.zeros(x.shape[:-1] + (4, 4))
+    out[..., :3, :3] = a * W + b * W2
+    out[..., :3, 3] = x[..., 3:]
+    out[..., :3, 3] += np.einsum('...ij,...j->...i', b * W + c * W2, x[..., 3:])
+    out[..., 0, 0] += 1.0
+    out[..., 1, 1] += 1.0
+    out[..., 2, 2] += 1.0
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def _dexp(x, coef):
+    A = ad(x)
+    A2 = A @ A
+    A3 = A2 @ A
+    A4 = A2 @ A2
+    e = (Ellipsis, None, None)
+    f1, f2, f3, f4 = coef[3:]
+    return np.eye(6) + f1[e] * A + f2[e] * A2 + f3[e] * A3 + f4[e] * A4
+
+
 def exp_se3(x: np.ndarray) -> np.ndarray:
     """Return the SE(3) exponential(s) (..., 4, 4) of twists ``x`` (..., 6), closed form."""
     x = np.asarray(x, dtype=float)
-    w, v = x[..., :3], x[..., 3:]
-    th2 = np.sum(w * w, axis=-1)
-    th = np.sqrt(th2)
-    small = th < _SMALL
-    ths = np.where(small, 1.0, th)
-    a = np.where(small, 1 - th2 / 6 + th2 ** 2 / 120, np.sin(ths) / ths)
-    b = np.where(small, 0.5 - th2 / 24 + th2 ** 2 / 720, (1 - np.cos(ths)) / ths ** 2)
-    c = np.where(small, 1 / 6 - th2 / 120 + th2 ** 2 / 5040, (ths - np.sin(ths)) / ths ** 3)
-    W = skew(w)
-    W2 = W @ W
-    eye = np.eye(3)
-    R = eye + a[..., None, None] * W + b[..., None, None] * W2
-    V = eye + b[..., None, None] * W + c[..., None, None] * W2
-    out = np.zeros(x.shape[:-1] + (4, 4))
-    out[..., :3, :3] = R
-    out[..., :3, 3] = np.einsum('...ij,...j->...i', V, v)
-    out[..., 3, 3] = 1.0
-    return out
+    return _exp(x, _coefficients(np.sum(x[..., :3] ** 2, axis=-1), False))
 
 
 def dexp_se3(x: np.ndarray) -> np.ndarray:
@@ -85,25 +121,15 @@ def dexp_se3(x: np.ndarray) -> np.ndarray:
     (ad^5 = -2 th^2 ad^3 - th^4 ad) as I + f1 ad + f2 ad^2 + f3 ad^3 + f4 ad^4.
     """
     x = np.asarray(x, dtype=float)
-    A = ad(x)
-    A2 = A @ A
-    A3 = A2 @ A
-    A4 = A3 @ A
-    th2 = np.sum(x[..., :3] ** 2, axis=-1)
-    th = np.sqrt(th2)
-    small = th < _SMALL
-    t = np.where(small, 1.0, th)
-    s, c = np.sin(t), np.cos(t)
-    f1 = np.where(small, -(0.5 - th2 ** 2 / 720),
-                  -(4 - 4 * c - t * s) / (2 * t ** 2))
-    f2 = np.where(small, 1 / 6 - th2 ** 2 / 5040,
-                  (4 * t - 5 * s + t * c) / (2 * t ** 3))
-    f3 = np.where(small, -(1 / 24 - th2 / 360 + th2 ** 2 / 13440),
-                  -(2 - 2 * c - t * s) / (2 * t ** 4))
-    f4 = np.where(small, 1 / 120 - th2 / 2520 + th2 ** 2 / 120960,
-                  (2 * t - 3 * s + t * c) / (2 * t ** 5))
-    e = (slice(None),) * (x.ndim - 1) + (None, None)
-    return np.eye(6) + f1[e] * A + f2[e] * A2 + f3[e] * A3 + f4[e] * A4
+    return _dexp(x, _coefficients(np.sum(x[..., :3] ** 2, axis=-1), True))
+
+
+def exp_dexp_se3(x: np.ndarray):
+    """Return exp(x), Ad_{exp(-x)} and T(x) sharing one set of trigonometric coefficients."""
+    x = np.asarray(x, dtype=float)
+    coef = _coefficients(np.sum(x[..., :3] ** 2, axis=-1), True)
+    E = _exp(x, coef)
+    return E, ad_inv_pose(E), _dexp(x, coef)
 
 
 def rpy_matrix(rpy) -> np.ndarray:

@@ -35,6 +35,10 @@ class Obstacle:
     def sdf_hessian(self, p: np.ndarray, eps: float = 1e-6):
         """Return distance (P,), gradient (P, 3) and Hessian (P, 3, 3) in one evaluation."""
         p = np.atleast_2d(p)
+        if hasattr(self, '_sdf_hessian'):
+            # Closed form: the contact model calls this for every refinement step.
+            d, n, H = self._sdf_hessian((p - self.t) @ self.R)
+            return d, n @ self.R.T, self.R @ H @ self.R.T
         steps = np.concatenate([np.zeros((1, 3)), np.eye(3), -np.eye(3)]) * eps   # (7, 3)
         d, n = self.sdf((p[:, None, :] + steps[None]).reshape(-1, 3))
         d, n = d.reshape(len(p), 7), n.reshape(len(p), 7, 3)
@@ -56,6 +60,22 @@ def _normalise(v):
     return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-300)
 
 
+def _outer(a, b):
+    return a[:, :, None] * b[:, None, :]
+
+
+def _circle_hessian(p, n, dist, R0):
+    """
+    Return the Hessian of the distance ``dist`` to a circle of radius R0 around +z.
+
+    H = [(I - n n^T) - (R0 / rho) t t^T] / dist, t the circle's tangent at p's azimuth.
+    """
+    rho = np.maximum(np.hypot(p[:, 0], p[:, 1]), 1e-12)
+    t = np.column_stack([-p[:, 1] / rho, p[:, 0] / rho, np.zeros(len(p))])
+    return (np.eye(3) - _outer(n, n) - (R0 / rho)[:, None, None] * _outer(t, t)) \
+        / np.maximum(dist, 1e-12)[:, None, None]
+
+
 class Sphere(Obstacle):
     kind = 'sphere'
 
@@ -66,6 +86,10 @@ class Sphere(Obstacle):
     def _sdf(self, p):
         nrm = np.linalg.norm(p, axis=1)
         return nrm - self.r, _normalise(p)
+
+    def _sdf_hessian(self, p):
+        d, n = self._sdf(p)
+        return d, n, _circle_hessian(p, n, d + self.r, 0.0)
 
     def _raycast(self, o, d):
         b = d @ o
@@ -87,6 +111,10 @@ class Plane(Obstacle):
         n = np.zeros_like(p)
         n[:, 2] = 1.0
         return p[:, 2], n
+
+    def _sdf_hessian(self, p):
+        d, n = self._sdf(p)
+        return d, n, np.zeros((len(p), 3, 3))
 
     def _raycast(self, o, d):
         with np.errstate(divide='ignore', invalid='ignore'):
@@ -118,6 +146,22 @@ class Cylinder(Obstacle):
         n_in = np.where((dr > dz)[:, None], radial, axial)
         n = np.where((outside > 0)[:, None], n_out, n_in)
         return d, n
+
+    def _sdf_hessian(self, p):
+        # Rim (outside both): distance to the rim circle; side (outside radially, or
+        # inside nearer the side): t t^T / rho; caps: flat.
+        d, n = self._sdf(p)
+        rho = np.maximum(np.hypot(p[:, 0], p[:, 1]), 1e-12)
+        dr, dz = rho - self.r, np.abs(p[:, 2]) - self.hh
+        rim = (dr > 0) & (dz > 0)
+        side = ((dr > 0) & (dz <= 0)) | ((d <= 0) & (dr > dz))
+        t = np.column_stack([-p[:, 1] / rho, p[:, 0] / rho, np.zeros(len(p))])
+        H = (side / rho)[:, None, None] * _outer(t, t)
+        if rim.any():
+            pr = p[rim].copy()
+            pr[:, 2] -= np.sign(pr[:, 2]) * self.hh
+            H[rim] = _circle_hessian(pr, n[rim], d[rim], self.r)
+        return d, n, H
 
     def _raycast(self, o, d):
         P = len(d)
@@ -160,6 +204,10 @@ class Ring(Obstacle):
         centre = self.R0 * radial
         v = p - centre
         return np.linalg.norm(v, axis=1) - self.r, _normalise(v + 0.0 * rho[:, None])
+
+    def _sdf_hessian(self, p):
+        d, n = self._sdf(p)
+        return d, n, _circle_hessian(p, n, d + self.r, self.R0)
 
     def _raycast(self, o, d):
         # Sphere tracing from the bounding sphere (the torus distance is exact).
@@ -230,7 +278,8 @@ class Prism(Obstacle):
         G = np.einsum('fai,fbi->fab', self._fe, self._fe)
         self._fginv = np.linalg.inv(G)                                # (6, 2, 2)
 
-    def _sdf(self, p):
+    def _closest(self, p):
+        """Return distance, normal, nearest-feature index (< 12: edge) and edge parameter."""
         # Exact distance: inside, the largest face distance; outside, the nearest point
         # among the face interiors and the 12 edges (C1 outside, so contact is smooth).
         if not hasattr(self, '_fa'):
@@ -250,12 +299,31 @@ class Prism(Obstacle):
         allc = np.concatenate([ce, cf], axis=1)
         alld = np.concatenate([de, df], axis=1)
         k = np.argmin(alld, axis=1)
-        closest = allc[np.arange(len(p)), k]
+        rows = np.arange(len(p))
+        closest = allc[rows, k]
         outside = inside_d > 0
-        d = np.where(outside, alld[np.arange(len(p)), k], inside_d)
+        d = np.where(outside, alld[rows, k], inside_d)
         n_out = _normalise(p - closest)
         n_in = self.normals[np.argmax(e, axis=1)]
-        return d, np.where(outside[:, None], n_out, n_in)
+        k = np.where(outside, k, 12)          # inside: a face (flat)
+        return d, np.where(outside[:, None], n_out, n_in), k, t[rows, np.minimum(k, 11)]
+
+    def _sdf(self, p):
+        return self._closest(p)[:2]
+
+    def _sdf_hessian(self, p):
+        # Faces are flat; an edge's interior is a line (I - n n^T - e e^T) / d, its ends
+        # vertices (I - n n^T) / d.
+        d, n, k, t = self._closest(p)
+        edge = k < 12
+        H = np.zeros((len(p), 3, 3))
+        if edge.any():
+            ne = n[edge]
+            Hm = np.eye(3) - _outer(ne, ne)
+            ax = _normalise(self._eab[k[edge]])
+            line = ((t[edge] > 0.0) & (t[edge] < 1.0))[:, None, None]
+            H[edge] = (Hm - line * _outer(ax, ax)) / np.maximum(d[edge], 1e-12)[:, None, None]
+        return d, n, H
 
     def _raycast(self, o, d):
         den = d @ self.normals.T                          # (P, 6)

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from softshape_ros.sim.lie import ad, ad_inv_pose, dexp_se3, exp_se3
+from softshape_ros.sim.lie import ad, exp_dexp_se3, exp_se3
 
 XI_STAR = np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0])
 _Z1, _Z2 = 0.5 - np.sqrt(3.0) / 6.0, 0.5 + np.sqrt(3.0) / 6.0
@@ -90,6 +90,13 @@ class Rod:
         self._comp_rows = np.repeat(self.comps, nm)
         self._col_off = np.arange(nm * len(self.comps))
         self._mode_idx = np.tile(np.arange(nm), len(self.comps))
+        # Legendre polynomials as monomial coefficients (columns): two numpy calls per
+        # evaluation instead of a recurrence (per-call overhead dominates these sizes).
+        self._legmono = np.zeros((nm, nm))
+        for j in range(nm):
+            c = np.polynomial.legendre.leg2poly(np.eye(nm)[j])
+            self._legmono[:len(c), j] = c
+        self._pow = np.arange(nm, dtype=float)
         self.n = self.dofs_per_seg * self.nseg
         # Section stiffness diag(GJ, EI, EI, EA, GA, GA) and the generalised stiffness K
         # (Legendre modes are orthogonal: int_0^L P_i P_j dX = L / (2j + 1) delta_ij).
@@ -147,8 +154,7 @@ class Rod:
         """Return Phi (P, 6, n) at local abscissae ``x`` of segments ``seg``."""
         seg = np.atleast_1d(np.asarray(seg, dtype=int))
         x = np.atleast_1d(np.asarray(x, dtype=float))
-        P = np.polynomial.legendre.legvander(2.0 * x / self.lengths[seg] - 1.0,
-                                             self.spec.order)
+        P = ((2.0 * x / self.lengths[seg] - 1.0)[:, None] ** self._pow) @ self._legmono
         out = np.zeros((len(x), 6, self.n))
         rows = np.arange(len(x))[:, None]
         out[rows, self._comp_rows[None, :], (seg * self.dofs_per_seg)[:, None]
@@ -173,13 +179,13 @@ class Rod:
         hh = h[:, None]
         ad1 = ad(x1)
         omega = hh / 2 * (x1 + x2) + _C4 * hh ** 2 * np.einsum('mij,mj->mi', ad1, x2)
-        E = exp_se3(omega)
         if not jac:
-            return E, None, None
+            return exp_se3(omega), None, None
+        E, AdInv, T = exp_dexp_se3(omega)
         ad2 = ad(x2)
         S = (hh[:, :, None] / 2 * (phi1 + phi2)
              + _C4 * hh[:, :, None] ** 2 * (ad1 @ phi2 - ad2 @ phi1))
-        return E, ad_inv_pose(E), dexp_se3(omega) @ S
+        return E, AdInv, T @ S
 
     def forward(self, q, jac: bool = True) -> Kinematics:
         """Run the forward pass: node poses and (if ``jac``) body Jacobians."""
@@ -208,9 +214,8 @@ class Rod:
         h = X - a
         seg = self.int_seg[m]
         xa = self.int_a[m]
-        phi1 = self.phi(seg, xa + _Z1 * h)
-        phi2 = self.phi(seg, xa + _Z2 * h)
-        E, AdInv, TS = self._magnus(kin.q, phi1, phi2, h, jac)
+        ph = self.phi(np.concatenate([seg, seg]), np.concatenate([xa + _Z1 * h, xa + _Z2 * h]))
+        E, AdInv, TS = self._magnus(kin.q, ph[:len(X)], ph[len(X):], h, jac)
         g = kin.g[m] @ E
         if not jac:
             return g, None

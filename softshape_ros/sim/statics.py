@@ -225,16 +225,17 @@ class Statics:
                 start = rod.offsets[seg]
                 # Regular nodes of the proximal segments only.
                 b = np.searchsorted(rod.gauss_X, start - 1e-15, side='right')
-                for i in range(len(t.X)):
-                    if x[i] <= 0.0:
-                        continue
-                    Xq = start[i] + x[i] * (xg + 1) / 2
-                    wq = x[i] * wg / 2
+                # All points' own-segment rules in one batch (numpy call overhead dominates).
+                i = np.nonzero(x > 0.0)[0]
+                if len(i):
+                    G = len(xg)
+                    Xq = (start[i, None] + x[i, None] * (xg + 1) / 2).ravel()
+                    wq = (x[i, None] * wg / 2).ravel()
                     gq, Jq = rod.at(kin, Xq)
-                    phq = rod.phi(np.full(len(Xq), seg[i]), Xq - start[i])
-                    Fq = np.broadcast_to(t.f[i], (len(Xq), 3))
-                    Mq = np.broadcast_to(fm[i], (len(Xq), 3))
-                    dl = self._dlam(gq, Jq, Fq, Mq, np.broadcast_to(dfm[i], (len(Xq), 3, n)))
+                    phq = rod.phi(np.repeat(seg[i], G), Xq - np.repeat(start[i], G))
+                    Fq = np.repeat(t.f[i], G, axis=0)
+                    Mq = np.repeat(fm[i], G, axis=0)
+                    dl = self._dlam(gq, Jq, Fq, Mq, np.repeat(dfm[i], G, axis=0))
                     extra += np.einsum('k,kin,kim->nm', wq, phq, dl)
                     if in_q:
                         Qp += np.einsum('k,kin,ki->n', wq, phq, self._lam(gq, Fq, Mq))
