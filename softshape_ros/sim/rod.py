@@ -208,6 +208,10 @@ class Rod:
     def at(self, kin: Kinematics, X, jac: bool = True):
         """Return poses (P, 4, 4) and, if ``jac``, body Jacobians (P, 6, n) at arc lengths X."""
         X = np.clip(np.atleast_1d(np.asarray(X, dtype=float)), 0.0, self.length)
+        k = np.minimum(np.searchsorted(self.node_X, X), len(self.node_X) - 1)
+        if np.all(self.node_X[k] == X):
+            # All at nodes (a tip load): the forward pass has them already.
+            return kin.g[k], (kin.J[k] if jac else None)
         # Interval m spans node m -> node m + 1.
         m = np.clip(np.searchsorted(self.node_X, X, side='right') - 1, 0, len(self.int_h) - 1)
         a = self.node_X[m]
