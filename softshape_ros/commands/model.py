@@ -84,7 +84,9 @@ def register(sub) -> None:
     p.add_argument('--seed', type=int, default=0)
     p.add_argument('--rows', type=int, default=None, help='use only the first N rows')
     p.add_argument('--batch-size', type=int, default=256)
-    p.add_argument('--lr', type=float, default=2e-3)
+    p.add_argument('--lr', type=float, default=None,
+                   help="Adam learning rate (default: the architecture's own, "
+                        'DEFAULT_LR in softshape_ros/model/train.py)')
     p.add_argument('--max-steps', type=int, default=1500)
     p.add_argument('--eval-every', type=int, default=10, help='steps between validations')
     p.add_argument('--patience', type=int, default=8,
@@ -113,9 +115,9 @@ def register(sub) -> None:
     p.add_argument('--sizes', default='100,200,500,1000')
     p.add_argument('--test-fraction', type=float, default=0.2)
     p.add_argument('--seed', type=int, default=0)
-    p.add_argument('--max-steps', type=int, default=150)
+    p.add_argument('--max-steps', type=int, default=400)
     p.add_argument('--eval-every', type=int, default=10)
-    p.add_argument('--patience', type=int, default=5)
+    p.add_argument('--patience', type=int, default=8)
     p.add_argument('--threads', type=int, default=0)
     p.add_argument('--splits', default='random,scene',
                    help='train only these splits here (the table uses all cached runs)')

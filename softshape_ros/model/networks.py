@@ -44,29 +44,22 @@ class PaperNet(nn.Module):
         return self.head(self.decoder(self.encoder(torch.cat([image, planes], 1))))
 
 
-class FiLM(nn.Module):
-    """Per-channel scale and shift from the actuation: every stage sees the pressures."""
-
-    def __init__(self, cond: int, channels: int):
-        super().__init__()
-        self.proj = nn.Linear(cond, 2 * channels)
-        nn.init.zeros_(self.proj.weight)
-        nn.init.zeros_(self.proj.bias)
-
-    def forward(self, x: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
-        gamma, beta = self.proj(c)[:, :, None, None].chunk(2, 1)
-        return x * (1 + gamma) + beta
-
-
 class Stage(nn.Module):
-    """Conv -> FiLM(actuation) -> ReLU."""
+    """Conv -> FiLM (per-channel scale and shift from the actuation) -> ReLU."""
 
-    def __init__(self, conv: nn.Module, cond: int, channels: int):
+    def __init__(self, conv: nn.Module, channels: int):
         super().__init__()
-        self.conv, self.film = conv, FiLM(cond, channels)
+        self.conv, self.channels = conv, channels
 
-    def forward(self, x, c):
-        return torch.relu(self.film(self.conv(x), c))
+    def forward(self, x, gamma, beta):
+        return torch.relu(self.conv(x) * (1 + gamma) + beta)
+
+
+def coordinate_planes(b: int, h: int, w: int, like: torch.Tensor) -> torch.Tensor:
+    """Return B x 2 x H x W planes of x and y in [-1, 1] (CoordConv)."""
+    ys = torch.linspace(-1.0, 1.0, h, dtype=like.dtype).view(1, 1, h, 1).expand(b, 1, h, w)
+    xs = torch.linspace(-1.0, 1.0, w, dtype=like.dtype).view(1, 1, 1, w).expand(b, 1, h, w)
+    return torch.cat([xs, ys], 1)
 
 
 class OursNet(nn.Module):
@@ -76,24 +69,37 @@ class OursNet(nn.Module):
     Why: the paper's constant pressure planes only bias the first layer, and its bottleneck
     must re-draw the static background and object from a 4x4 latent. Skips carry the scene
     at full detail, FiLM lets the actuation steer every scale, and the residual output means
-    the network only has to draw what moves.
+    the network only has to draw what moves. FiLM is a per-channel modulation, the same at
+    every pixel, so two coordinate planes (CoordConv) join the input: where the tip goes
+    depends on the actuation, and the network needs to know where it is drawing
+    (reproduction study: 25.0 -> 22.0 test RMSE at the same 300 steps, see README).
+    All FiLM parameters come from one linear projection of the actuation embedding.
     """
 
-    def __init__(self, image_channels: int, widths=(16, 32, 64, 64), cond: int = 64):
+    def __init__(self, image_channels: int, widths=(16, 32, 64, 64), cond: int = 64,
+                 coords: bool = True):
         super().__init__()
+        self.coords = bool(coords)
         self.cond = nn.Sequential(nn.Linear(N_PRESSURES, cond), nn.ReLU(),
                                   nn.Linear(cond, cond), nn.ReLU())
         self.down = nn.ModuleList()
-        c = image_channels + N_PRESSURES
+        c = image_channels + N_PRESSURES + (2 if self.coords else 0)
         for w in widths:
-            self.down.append(Stage(nn.Conv2d(c, w, 4, 2, 1), cond, w))
+            self.down.append(Stage(nn.Conv2d(c, w, 4, 2, 1), w))
             c = w
         self.up = nn.ModuleList()
         self.merge = nn.ModuleList()
         for w in reversed(widths[:-1]):
-            self.up.append(Stage(nn.ConvTranspose2d(c, w, 4, 2, 1), cond, w))
-            self.merge.append(Stage(nn.Conv2d(2 * w, w, 3, 1, 1), cond, w))
+            self.up.append(Stage(nn.ConvTranspose2d(c, w, 4, 2, 1), w))
+            self.merge.append(Stage(nn.Conv2d(2 * w, w, 3, 1, 1), w))
             c = w
+        # In the order forward() uses them: down stages, then (up, merge) per scale.
+        stages = [*self.down, *[st for pair in zip(self.up, self.merge) for st in pair]]
+        self._film_split = [2 * st.channels for st in stages]
+        # Zero init: every stage starts as a plain conv + ReLU.
+        self.film = nn.Linear(cond, sum(self._film_split))
+        nn.init.zeros_(self.film.weight)
+        nn.init.zeros_(self.film.bias)
         # The last up-step draws the change at full resolution directly (no 64x64 convs:
         # they would triple the cost for little gain at this image size).
         self.head = nn.ConvTranspose2d(c, image_channels, 4, 2, 1)
@@ -102,16 +108,24 @@ class OursNet(nn.Module):
 
     def forward(self, image: torch.Tensor, pressure: torch.Tensor) -> torch.Tensor:
         b, _, h, w = image.shape
-        c = self.cond(pressure)
-        x = torch.cat([image, pressure[:, :, None, None].expand(b, N_PRESSURES, h, w)], 1)
+        films = iter(self.film(self.cond(pressure))[:, :, None, None]
+                     .split(self._film_split, 1))
+
+        def run(stage, x):
+            return stage(x, *next(films).chunk(2, 1))
+
+        parts = [image, pressure[:, :, None, None].expand(b, N_PRESSURES, h, w)]
+        if self.coords:
+            parts.append(coordinate_planes(b, h, w, image))
+        x = torch.cat(parts, 1)
         skips = []
         for stage in self.down:
-            x = stage(x, c)
+            x = run(stage, x)
             skips.append(x)
         skips.pop()
         for up, merge in zip(self.up, self.merge):
-            x = up(x, c)
-            x = merge(torch.cat([x, skips.pop()], 1), c)
+            x = run(up, x)
+            x = run(merge, torch.cat([x, skips.pop()], 1))
         return image + self.head(x)
 
 

@@ -27,6 +27,8 @@ from softshape_ros.model.data import split_indices
 from softshape_ros.model.evaluate import predict_rows, prediction_panels
 from softshape_ros.model.metrics import RobotSilhouette, evaluate_arrays, rmse
 from softshape_ros.model.predictor import Predictor
+import softshape_ros.model.networks as networks
+import softshape_ros.model.train as train_module
 from softshape_ros.model.train import TrainConfig, train
 
 matplotlib.use('Agg')
@@ -44,9 +46,9 @@ class ReproConfig:
     sizes: list = field(default_factory=lambda: [100, 200, 500, 1000])
     test_fraction: float = 0.2
     seed: int = 0
-    max_steps: int = 150
+    max_steps: int = 400
     eval_every: int = 10
-    patience: int = 5
+    patience: int = 8
     threads: int = 0
 
 
@@ -112,8 +114,10 @@ def reproduce(dataset, out, cfg: ReproConfig | None = None, work=None, fig4c: bo
     grid = [(sp, v, a, s) for sp in SPLITS for s in cfg.sizes for v in VIEWS for a in ARCHS]
     wanted = set(splits) | set(views) | set(archs)
     grid.sort(key=lambda g: not {g[0], g[1], g[2]} <= wanted)
+    # Cached runs count only for the same grid, data, networks and training code.
+    code = b''.join(Path(m.__file__).read_bytes() for m in (networks, train_module))
     stamp = hashlib.sha256(json.dumps([dataclasses.asdict(cfg), str(full.path), len(full)])
-                           .encode()).hexdigest()[:12]
+                           .encode() + code).hexdigest()[:12]
     results = {}
     bar = tqdm(grid, desc='reproduce', dynamic_ncols=True)
     for split, view, arch, size in bar:
