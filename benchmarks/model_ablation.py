@@ -1,0 +1,140 @@
+"""
+Design study behind ``ours``: train variants for a fixed number of steps, score on held-out rows.
+
+Not part of ``make bench`` (minutes per variant). Each variant is JSON: ``{"arch": "ours",
+...OursNet params}``, ``{"arch": "paper"}``, or ``{"arch": "variant", ...}`` for the
+alternatives that lost (kept here so the README's table can be re-run)::
+
+    python -m benchmarks.model_ablation --dataset /tmp/repro/sim1600 --steps 300 \\
+        '{"arch": "ours", "coords": false}' '{"arch": "ours"}' \\
+        '{"arch": "variant", "coords": true, "spatial": true}' --lr 4e-3
+
+Rows: the reproduction's random-split plan (1000 training rows, the 320 test rows).
+Prints one JSON line per variant (test RMSE, silhouette IoU, copy baseline, seconds).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import numpy as np
+import torch
+from torch import nn
+
+import softshape_ros.model.train as train_module
+from softshape_ros.data import load_dataset
+from softshape_ros.model.data import to_tensors
+from softshape_ros.model.metrics import RobotSilhouette, evaluate_arrays
+from softshape_ros.model.networks import N_PRESSURES, Stage, build_network, coordinate_planes
+from softshape_ros.model.reproduce import ReproConfig, plan, select_views
+
+
+class VariantNet(nn.Module):
+    """``ours`` with options that were tried and lost: a pressure map, coords in the decoder."""
+
+    def __init__(self, image_channels, widths=(16, 32, 64, 64), cond=64, coords=True,
+                 spatial=False, decoder_coords=False):
+        super().__init__()
+        self.coords, self.spatial, self.decoder_coords = coords, spatial, decoder_coords
+        self.cond = nn.Sequential(nn.Linear(N_PRESSURES, cond), nn.ReLU(),
+                                  nn.Linear(cond, cond), nn.ReLU())
+        c = image_channels + N_PRESSURES + (2 if coords else 0)
+        self.down, self.up, self.merge = nn.ModuleList(), nn.ModuleList(), nn.ModuleList()
+        for w in widths:
+            self.down.append(Stage(nn.Conv2d(c, w, 4, 2, 1), w))
+            c = w
+        if spatial:     # the actuation drawn straight into the 4x4 bottleneck
+            self.smap = nn.Linear(cond, widths[-1] * 16)
+        extra = 2 if decoder_coords else 0
+        for w in reversed(widths[:-1]):
+            self.up.append(Stage(nn.ConvTranspose2d(c, w, 4, 2, 1), w))
+            self.merge.append(Stage(nn.Conv2d(2 * w + extra, w, 3, 1, 1), w))
+            c = w
+        stages = [*self.down, *[s for pair in zip(self.up, self.merge) for s in pair]]
+        self.split = [2 * s.channels for s in stages]
+        self.film = nn.Linear(cond, sum(self.split))
+        nn.init.zeros_(self.film.weight)
+        nn.init.zeros_(self.film.bias)
+        self.head = nn.ConvTranspose2d(c, image_channels, 4, 2, 1)
+        nn.init.zeros_(self.head.weight)
+        nn.init.zeros_(self.head.bias)
+
+    def forward(self, image, pressure):
+        b, _, h, w = image.shape
+        c = self.cond(pressure)
+        films = iter(self.film(c)[:, :, None, None].split(self.split, 1))
+        parts = [image, pressure[:, :, None, None].expand(b, N_PRESSURES, h, w)]
+        if self.coords:
+            parts.append(coordinate_planes(b, h, w, image))
+        x = torch.cat(parts, 1)
+        skips = []
+        for stage in self.down:
+            x = stage(x, *next(films).chunk(2, 1))
+            skips.append(x)
+        skips.pop()
+        if self.spatial:
+            x = torch.relu(x + self.smap(c).view(b, -1, 4, 4))
+        for up, merge in zip(self.up, self.merge):
+            x = up(x, *next(films).chunk(2, 1))
+            m = torch.cat([x, skips.pop()], 1)
+            if self.decoder_coords:
+                m = torch.cat([m, coordinate_planes(b, m.shape[2], m.shape[3], m)], 1)
+            x = merge(m, *next(films).chunk(2, 1))
+        return image + self.head(x)
+
+
+def _build(arch, views, channels, **params):
+    if arch == 'variant':
+        return VariantNet(views * channels, **params)
+    return build_network(arch, views, channels, **params)
+
+
+def run_variant(ds, full, rows, test, variant: dict, steps: int, lr, seed: int) -> dict:
+    params = dict(variant)
+    arch = params.pop('arch', 'ours')
+    train_module.build_network = _build     # the study's variants next to the real ones
+    cfg = train_module.TrainConfig(arch=arch, max_steps=steps, eval_every=10, patience=10 ** 6,
+                                   lr=lr, seed=seed, arch_params=params)
+    t0 = time.perf_counter()
+    res = train_module.train(ds, cfg, indices=rows, progress=False)
+    secs = time.perf_counter() - t0
+    x, _, p = to_tensors(ds, test, ds.max_pressure_pa)
+    with torch.no_grad():
+        y = torch.cat([res.model(x[i:i + 256], p[i:i + 256]) for i in range(0, len(x), 256)])
+    v = len(ds.views)
+    pred = (y.clamp(0, 1) * 255).round().numpy().astype(np.uint8)
+    pred = pred.reshape(len(test), v, ds.channels, *pred.shape[-2:])
+    sil = RobotSilhouette.fit(np.asarray(full.initial))
+    sil = RobotSilhouette(sil.threshold, sil.base_rc[:v])
+    m = evaluate_arrays(np.asarray(ds.initial[test]), np.asarray(ds.target[test]), pred, sil)
+    return {'variant': variant, 'steps': steps, 'lr': res.config['training']['lr'],
+            'seconds': round(secs), 'test_rmse': round(m['model']['rmse'], 2),
+            'silhouette_iou': round(m['model']['silhouette_iou'], 3),
+            'copy_rmse': round(m['copy']['rmse'], 2)}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog='python -m benchmarks.model_ablation')
+    ap.add_argument('variants', nargs='+', help='JSON per variant')
+    ap.add_argument('--dataset', required=True, help='stereo dataset (as for reproduce)')
+    ap.add_argument('--steps', type=int, default=300)
+    ap.add_argument('--size', type=int, default=1000)
+    ap.add_argument('--views', choices=('mono', 'stereo'), default='stereo')
+    ap.add_argument('--lr', type=float, default=None, help="default: the network's own")
+    ap.add_argument('--seed', type=int, default=0)
+    ap.add_argument('--threads', type=int, default=1)
+    args = ap.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    full = load_dataset(args.dataset)
+    ds = full if args.views == 'stereo' else select_views(full, 1)
+    test, rows = plan(full, ReproConfig(sizes=[args.size]))['random']
+    for v in args.variants:
+        print(json.dumps(run_variant(ds, full, rows[args.size], test, json.loads(v), args.steps,
+                                     args.lr, args.seed)), flush=True)
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
