@@ -111,12 +111,13 @@ class SimRig:
         q, asm, it = self.statics.solve(p, q0=self._q_free)
         self._q_free = q
         if self.contact is not None:
-            check = self.statics.assemble(q, p, [], 1.0, self.contact)
-            if check.extra['contacts']:
+            # The contact model alone decides: with no candidate it adds nothing to asm.
+            _, info = self.contact(self.rod, asm.kin)
+            if info['contacts']:
                 q, asm, it2 = self._solve_contact(p, self._touching_start(q))
                 it += it2
             else:
-                asm = check
+                asm.extra = info
         self._q = q
         return self._state(q, p, asm, it)
 

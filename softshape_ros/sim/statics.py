@@ -16,6 +16,7 @@ from everything distal). A solve that does not converge raises :class:`SolverErr
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 
@@ -74,12 +75,25 @@ class LoadTerm:
 @dataclass
 class Assembly:
     residual: np.ndarray
-    tangent: np.ndarray
+    partial_tangent: np.ndarray
     scale: float
     kin: Kinematics
     extra: dict = field(default_factory=dict)
     energy: float | None = None      # total potential (None: a load is not conservative)
     energy_scale: float = 0.0
+    pending: object = None           # callable: the tangent part still to subtract
+
+    @property
+    def tangent(self) -> np.ndarray:
+        """
+        Return the tangent; its geometric stiffness is computed on first use.
+
+        Rejected line-search trials and the converged state never need it.
+        """
+        if self.pending is not None:
+            self.partial_tangent = self.partial_tangent - self.pending()
+            self.pending = None
+        return self.partial_tangent
 
 
 class Statics:
@@ -305,14 +319,19 @@ class Statics:
         quad = [point and bool(np.any(t.m)) for t, point in zip(terms, is_point)]
         for t, qd in zip(terms, quad):
             scale = max(scale, self._apply(t, R, Kt, residual=not qd))
-        if terms:
+        deferred = None
+        if terms and any(quad):
             Qp, Kg = self._geometric(kin, terms, is_point, quad)
             R -= Qp
             Kt -= Kg
             scale = max(scale, float(np.abs(Qp).max()))
+        elif terms:
+            # Tangent only: deferred until the Newton step asks for it.
+            deferred = partial(lambda *a: self._geometric(*a)[1], kin, terms, is_point, quad)
         energies.append(float(extra.get('energy', 0.0)))
         energy = float(sum(energies)) if conservative else None
-        return Assembly(R, Kt, scale, kin, extra, energy, float(sum(abs(e) for e in energies)))
+        return Assembly(R, Kt, scale, kin, extra, energy, float(sum(abs(e) for e in energies)),
+                        deferred)
 
     def solve(self, u, loads=(), q0=None, contact=None, tol: float = 1e-10,
               max_iter: int = 40, max_depth: int = 8):
