@@ -163,6 +163,10 @@ class SimRig:
 
         a, b = 0.0, 1.0
         ga, gb = gap(a), gap(b)
+        if ga <= 0.0 and self._q is not None:
+            # The last shape touches: walk from the rest shape instead.
+            q_prev = np.zeros_like(q_free)
+            ga = gap(a)
         if ga <= 0.0 or gb >= 0.0:
             return q_prev if ga <= 0.0 else q_free
         side = 0
