@@ -43,6 +43,9 @@ _QUINTIC = np.array([[1, 0, 0, -10, 15, -6], [0, 1, 0, -6, 8, -3],
                      [0, 0, 0, -4, 7, -3], [0, 0, 0, 10, -15, 6]], dtype=float)
 _POW = np.arange(6.0)
 _DPOW = np.arange(2.0, 6.0) * np.arange(1.0, 5.0)
+_S_SUB = np.arange(_SUB) / _SUB
+_W_SUB = (_S_SUB[:, None] ** _POW) @ _QUINTIC.T                          # p at the samples
+_DW_SUB = ((_S_SUB[:, None] ** _POW)[:, :5] * _POW[1:]) @ _QUINTIC[:, 1:].T   # dp/ds
 
 
 @dataclass
@@ -90,6 +93,7 @@ class ContactModel:
                  smoothing: float = DEFAULT_SMOOTHING_M):
         self.obstacles = [o for o in obstacles if o is not None]
         self.k, self.delta = float(stiffness), float(smoothing)
+        self._grid_cache = None
 
     def step_limit(self, rod, kin, move, depth: float = STEP_DEPTH_M) -> float:
         """
@@ -113,20 +117,23 @@ class ContactModel:
         return alpha
 
     @staticmethod
-    def _hermite(X0, h, P0, P1, T0, T1, A0, A1, x):
+    def _hermite(C, X0, h, x):
         """Return p, p', p'' (P, 3) at x of the quintic Hermite backbone on [X0, X0 + h]."""
-        s = (x - X0) / h
-        pw = s[:, None] ** _POW                                          # (P, 6)
-        hh = h[:, None]
-        # Basis weights for p, p', p'' (P, 6 each) on the control values p0, h p0',
-        # h^2 p0'', h^2 p1'', h p1', p1.
+        pw = ((x - X0) / h)[:, None] ** _POW                             # (P, 6)
+        # Basis weights for p, p', p'' (P, 6 each) on the control values C (P, 6, 3).
         w = pw @ _QUINTIC.T
         dw = (pw[:, :5] * _POW[1:]) @ _QUINTIC[:, 1:].T
         ddw = (pw[:, :4] * _DPOW) @ _QUINTIC[:, 2:].T
-        h2 = hh * hh
-        out = [c[:, 0:1] * P0 + c[:, 1:2] * (T0 * hh) + (c[:, 2:3] * A0 + c[:, 3:4] * A1) * h2
-               + c[:, 4:5] * (T1 * hh) + c[:, 5:6] * P1 for c in (w, dw, ddw)]
-        return out[0], out[1] / hh, out[2] / h2
+        return (np.einsum('pk,pkj->pj', w, C), np.einsum('pk,pkj->pj', dw, C) / h[:, None],
+                np.einsum('pk,pkj->pj', ddw, C) / (h * h)[:, None])
+
+    def _grid(self, rod):
+        """Return the sample arc lengths (nodes and Hermite points) and their tube radii."""
+        if self._grid_cache is None or self._grid_cache[0] is not rod:
+            Xs = rod.node_X
+            Xa = np.append((Xs[:-1, None] + np.diff(Xs)[:, None] * _S_SUB).ravel(), Xs[-1])
+            self._grid_cache = (rod, Xa, rod.radii[rod.locate(Xa)[0]])
+        return self._grid_cache[1:]
 
     def find(self, rod, kin):
         """
@@ -142,16 +149,16 @@ class ContactModel:
         R = kin.g[:, :3, :3]
         T = np.einsum('kij,kj->ki', R, xi[:, 3:])
         A = np.einsum('kij,kj->ki', R, cross(xi[:, :3], xi[:, 3:]))
-        nodes = (Xs, P, T, A)
         h = np.diff(Xs)
-        # Nodes and _SUB - 1 Hermite points inside each interval.
-        m = len(h)
-        Xa = (Xs[:-1, None] + h[:, None] * (np.arange(_SUB) / _SUB)).ravel()
-        iv = np.repeat(np.arange(m), _SUB)
-        Pa, Ta, _ = self._hermite(Xs[iv], h[iv], P[iv], P[iv + 1], T[iv], T[iv + 1], A[iv],
-                                  A[iv + 1], Xa)
-        Xa, Pa, Ta = np.append(Xa, Xs[-1]), np.vstack([Pa, P[-1:]]), np.vstack([Ta, T[-1:]])
-        rad = rod.radii[rod.locate(Xa)[0]]
+        hh = h[:, None]
+        # Control values p0, h p0', h^2 p0'', h^2 p1'', h p1', p1 of each interval (m, 6, 3).
+        C = np.stack([P[:-1], T[:-1] * hh, A[:-1] * hh * hh, A[1:] * hh * hh, T[1:] * hh,
+                      P[1:]], axis=1)
+        # Nodes and _SUB - 1 Hermite points inside each interval (fixed weights).
+        Xa, rad = self._grid(rod)
+        Pa = np.vstack([np.einsum('sk,mkj->msj', _W_SUB, C).reshape(-1, 3), P[-1:]])
+        Ta = np.vstack([(np.einsum('sk,mkj->msj', _DW_SUB, C) / h[:, None, None]).reshape(-1, 3),
+                        T[-1:]])
         out = []
         for oi, obj in enumerate(self.obstacles):
             d, nrm = obj.sdf(Pa)
@@ -164,7 +171,7 @@ class ContactModel:
             k = np.nonzero(is_min | is_max)[0]
             if len(k):
                 sign = np.where(is_min[k], 1.0, -1.0)
-                x = self._refine(obj, nodes, Xa, slope, k, sign)
+                x = self._refine(obj, (Xs, h, C), Xa, slope, k, sign)
                 out += [(xx, oi, sg, a, b) for xx, sg, a, b in zip(x, sign, Xa[k], Xa[k + 1])]
             if not up[-1] and gap[-1] < _NEAR_M:
                 out.append((rod.length, oi, 1.0, rod.length, rod.length))
@@ -177,11 +184,10 @@ class ContactModel:
         p(X) is the quintic Hermite interpolant of the backbone at the nodes (positions,
         tangents and curvatures), so no kinematics per step.
         """
-        Xs, P, T, A = nodes
+        Xs, h, C = nodes
         lo, hi = Xa[k].copy(), Xa[k + 1].copy()
         iv = k // _SUB
-        args = (Xs[iv], Xs[iv + 1] - Xs[iv], P[iv], P[iv + 1], T[iv], T[iv + 1], A[iv],
-                A[iv + 1])
+        args = (C[iv], Xs[iv], h[iv])
         sa, sb = slope[k], slope[k + 1]
         den = np.where(sa != sb, sa - sb, 1.0)
         x = np.clip(lo + (hi - lo) * np.where(sa != sb, sa / den, 0.5), lo, hi)
