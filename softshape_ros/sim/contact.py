@@ -34,7 +34,9 @@ DEFAULT_SMOOTHING_M = 2.0e-5
 STIFFENING_DEPTH_M = 2.0e-4     # p0: the penalty doubles its stiffness at 0.2 mm
 _NEAR_M = 3e-3          # refine minima of sampled gaps below this (samples <= 4.5 mm apart)
 _SUB = 8                # gap slope samples per node interval (<= 0.6 mm apart)
-STEP_DEPTH_M = 1e-4     # a Newton step may press a free node this deep (linearised)
+# A Newton step may press a free node this deep (linearised): one smoothing length. At
+# 0.1 mm the penalty overshoots (~3 N, tangent indefinite) and the next step jumps back out.
+STEP_DEPTH_M = 2e-5
 _CUTOFF = 30.0          # gaps beyond 30 smoothing lengths carry no force (< 1e-13 k delta)
 # Quintic Hermite basis (rows) in powers of s: control values p0, h p0', h^2 p0'', h^2 p1'',
 # h p1', p1. With the exact curvature at the nodes its minimiser is ~1e-8 m from the rod's.
