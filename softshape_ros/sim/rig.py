@@ -154,11 +154,11 @@ class SimRig:
         """
         q_prev = self._q if self._q is not None else np.zeros_like(q_free)
         rod = self.rod
-        X = np.linspace(0.0, rod.length, 16)          # 3 mm apart, the tip included
-        rad = rod.radii[rod.locate(X)[0]]
+        rad = rod.radii[rod.locate(rod.node_X)[0]]
 
         def gap(t):
-            pts = rod.positions(rod.forward(q_prev + t * (q_free - q_prev), jac=False), X)
+            # At the nodes (<= 4.2 mm apart, the tip included): no interpolation needed.
+            pts = rod.forward(q_prev + t * (q_free - q_prev), jac=False).g[:, :3, 3]
             return min(float((o.sdf(pts)[0] - rad).min()) for o in self.obstacles)
 
         a, b = 0.0, 1.0
