@@ -86,6 +86,7 @@ class SimRig:
         self.contact = None
         self._q = None
         self._q_free = None
+        self._free = None
         sample_n = int(np.ceil(self.rod.length / SPHERE_SPACING_M)) + 1
         self.sample_s = np.linspace(0.0, self.rod.length, sample_n)
 
@@ -108,8 +109,18 @@ class SimRig:
             p = np.clip(p + self.rng.normal(0.0, self.pressure_noise_pa, p.shape), 0.0,
                         self.limits)
         # The free shape first (cheap); it is the answer when it does not touch the object.
-        q, asm, it = self.statics.solve(p, q0=self._q_free)
-        self._q_free = q
+        q0 = self._q_free
+        if q0 is not None:
+            # The Newton step from the last free equilibrium, without assembling there again:
+            # the chamber load is linear in the pressures.
+            st = self.statics
+            dQ = st.B_ch @ (p - self._free[1])[st.chamber_idx]
+            try:
+                q0 = q0 + np.linalg.solve(self._free[0].tangent, dQ)
+            except np.linalg.LinAlgError:
+                pass
+        q, asm, it = self.statics.solve(p, q0=q0)
+        self._q_free, self._free = q, (asm, p)
         if self.contact is not None:
             # The contact model alone decides: with no candidate it adds nothing to asm.
             _, info = self.contact(self.rod, asm.kin)
