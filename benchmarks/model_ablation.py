@@ -5,9 +5,10 @@ Not part of ``make bench`` (minutes per variant). Each variant is JSON: ``{"arch
 ...OursNet params}``, ``{"arch": "paper"}``, or ``{"arch": "variant", ...}`` for the
 alternatives that lost (kept here so the README's table can be re-run)::
 
-    python -m benchmarks.model_ablation --dataset /tmp/repro/sim1600 --steps 300 \\
-        '{"arch": "ours", "coords": false}' '{"arch": "ours"}' \\
-        '{"arch": "variant", "coords": true, "spatial": true}' --lr 4e-3
+    python -m benchmarks.model_ablation --dataset D --steps 300 --lr 4e-3
+        '{"arch": "ours", "coords": false}' '{"arch": "variant", "spatial": true}'
+
+(one command line).
 
 Rows: the reproduction's random-split plan (1000 training rows, the 320 test rows).
 Prints one JSON line per variant (test RMSE, silhouette IoU, copy baseline, seconds).

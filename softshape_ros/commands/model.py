@@ -87,7 +87,7 @@ def register(sub) -> None:
     p.add_argument('--lr', type=float, default=None,
                    help="Adam learning rate (default: the architecture's own, "
                         'DEFAULT_LR in softshape_ros/model/train.py)')
-    p.add_argument('--max-steps', type=int, default=1500)
+    p.add_argument('--max-steps', type=int, default=600)
     p.add_argument('--eval-every', type=int, default=10, help='steps between validations')
     p.add_argument('--patience', type=int, default=8,
                    help='validations without improvement before stopping early')

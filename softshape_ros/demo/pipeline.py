@@ -45,7 +45,11 @@ class DemoSettings:
                 'dataset': (), 'train': ('max_steps', 'seed'), 'evaluate': (),
                 'live': ('live_scenes', 'live_commands', 'seed')}
         upto = STAGES[:STAGES.index(stage) + 1]
-        return {k: getattr(self, k) for s in upto for k in keys[s]}
+        key = {k: getattr(self, k) for s in upto for k in keys[s]}
+        if 'train' in upto:     # a model of older network code is retrained, not reused
+            from softshape_ros.model.train import code_stamp
+            key['model_code'] = code_stamp()
+        return key
 
 
 def banner(text: str) -> None:

@@ -27,9 +27,7 @@ from softshape_ros.model.data import split_indices
 from softshape_ros.model.evaluate import predict_rows, prediction_panels
 from softshape_ros.model.metrics import RobotSilhouette, evaluate_arrays, rmse
 from softshape_ros.model.predictor import Predictor
-import softshape_ros.model.networks as networks
-import softshape_ros.model.train as train_module
-from softshape_ros.model.train import TrainConfig, train
+from softshape_ros.model.train import TrainConfig, code_stamp, train
 
 matplotlib.use('Agg')
 import matplotlib.pyplot as plt  # noqa: E402
@@ -115,9 +113,8 @@ def reproduce(dataset, out, cfg: ReproConfig | None = None, work=None, fig4c: bo
     wanted = set(splits) | set(views) | set(archs)
     grid.sort(key=lambda g: not {g[0], g[1], g[2]} <= wanted)
     # Cached runs count only for the same grid, data, networks and training code.
-    code = b''.join(Path(m.__file__).read_bytes() for m in (networks, train_module))
-    stamp = hashlib.sha256(json.dumps([dataclasses.asdict(cfg), str(full.path), len(full)])
-                           .encode() + code).hexdigest()[:12]
+    stamp = hashlib.sha256(json.dumps([dataclasses.asdict(cfg), str(full.path), len(full),
+                                       code_stamp()]).encode()).hexdigest()[:12]
     results = {}
     bar = tqdm(grid, desc='reproduce', dynamic_ncols=True)
     for split, view, arch, size in bar:

@@ -11,6 +11,7 @@ checkpoint.
 from __future__ import annotations
 
 import copy
+import hashlib
 import math
 import os
 from dataclasses import asdict, dataclass, field
@@ -23,12 +24,19 @@ from tqdm import tqdm
 from softshape_ros.data import load_dataset
 from softshape_ros.model.checkpoint import save_checkpoint
 from softshape_ros.model.data import split_indices, to_tensors
+from softshape_ros.model import networks
 from softshape_ros.model.networks import build_network
 
 
 # Adam learning rates chosen on the simulated 1000-sample stereo set at 300 steps (README,
 # "The visual forward model"): each network at its own best, so the comparison is fair.
 DEFAULT_LR = {'paper': 1e-3, 'ours': 4e-3}
+
+
+def code_stamp() -> str:
+    """Hash of the network and training code: results of other code are never reused."""
+    code = b''.join(open(f, 'rb').read() for f in (networks.__file__, __file__))
+    return hashlib.sha256(code).hexdigest()[:12]
 
 
 @dataclass
@@ -41,7 +49,7 @@ class TrainConfig:
     val_fraction: float = 0.2
     batch_size: int = 256
     lr: float | None = None         # None: the architecture's default (DEFAULT_LR)
-    max_steps: int = 1500
+    max_steps: int = 600
     min_steps: int = 0               # never stop early before this many steps
     eval_every: int = 10             # steps between validations (early stopping rounds)
     patience: int = 8                # rounds without improvement before stopping
