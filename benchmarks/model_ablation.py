@@ -3,9 +3,10 @@ Design study behind ``ours``: train variants for a fixed number of steps, score 
 
 Not part of ``make bench`` (minutes per variant). Each variant is JSON: ``{"arch": "ours",
 ...OursNet params}``, ``{"arch": "paper"}``, or ``{"arch": "variant", ...}`` for the
-alternatives that lost (kept here so the README's table can be re-run)::
+alternatives that lost (kept so the README's design study can be re-run); an ``"lr"`` key
+sets its learning rate (default: the network's own, ``ours``' for variants)::
 
-    python -m benchmarks.model_ablation --dataset D --steps 300 --lr 4e-3
+    python -m benchmarks.model_ablation --dataset D --steps 300
         '{"arch": "ours", "coords": false}' '{"arch": "variant", "spatial": true}'
 
 (one command line).
@@ -95,6 +96,8 @@ def _build(arch, views, channels, **params):
 def run_variant(ds, full, rows, test, variant: dict, steps: int, lr, seed: int) -> dict:
     params = dict(variant)
     arch = params.pop('arch', 'ours')
+    # Each at its own best unless told: variants of ours at ours' rate.
+    lr = params.pop('lr', lr) or train_module.DEFAULT_LR.get(arch, train_module.DEFAULT_LR['ours'])
     train_module.build_network = _build     # the study's variants next to the real ones
     cfg = train_module.TrainConfig(arch=arch, max_steps=steps, eval_every=10, patience=10 ** 6,
                                    lr=lr, seed=seed, arch_params=params)
@@ -123,7 +126,8 @@ def main(argv=None) -> int:
     ap.add_argument('--steps', type=int, default=300)
     ap.add_argument('--size', type=int, default=1000)
     ap.add_argument('--views', choices=('mono', 'stereo'), default='stereo')
-    ap.add_argument('--lr', type=float, default=None, help="default: the network's own")
+    ap.add_argument('--lr', type=float, default=None,
+                    help="every variant's rate (default: each network's own)")
     ap.add_argument('--seed', type=int, default=0)
     ap.add_argument('--threads', type=int, default=1)
     args = ap.parse_args(argv)

@@ -72,7 +72,8 @@ def test_pressed_robot_stays_outside_with_normal_balancing_forces(kind):
         _, n = obj.sdf(c.backbone_m[None])
         f = np.asarray(c.force_n)
         assert np.linalg.norm(np.cross(f, n[0])) <= 1e-9 * max(np.linalg.norm(f), 1e-12)
-        assert f @ n[0] >= 0
+        # Out of the object; a ridge (a gap maximum between two minima) subtracts.
+        assert (f @ n[0] <= 0) if c.ridge else (f @ n[0] >= 0)
         # Located where the tube surface meets the object: the point lies on the object's
         # surface up to the penetration, and the backbone is one radius behind it.
         assert abs(obj.sdf(np.asarray(c.point_m)[None])[0][0]) <= abs(c.gap_m) + 1e-9
@@ -112,6 +113,7 @@ def test_tube_lying_along_the_parallel_cylinder_converges():
     st = rig.solve(p)
     assert st.residual < 1e-9 and st.max_penetration_m < 5e-4
     assert sum(c.gap_m < 0 for c in st.contacts) >= 2
+    assert any(c.ridge for c in st.contacts), 'the line contact should have a ridge'
     # Balance with every contact term (ridges pull with the force their minima overcount).
     rod = rig.rod
     g, J = rod.at(rod.forward(st.q), [c.s_m for c in st.contacts])

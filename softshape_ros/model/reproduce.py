@@ -158,7 +158,10 @@ def reproduce(dataset, out, cfg: ReproConfig | None = None, work=None, fig4c: bo
         panels_figure(sets[view], pick, work, biggest, view, split,
                       out / f'panels_{view}.png')
     ck = work / _key('random', 'stereo', 'ours', biggest)
-    if fig4c and (ck / 'config.json').exists():
+    if fig4c and not (ck / 'config.json').exists():
+        print(f'reproduce: no object-distance check (Fig. 4(c)): it needs the checkpoint {ck}, '
+              'trained here or kept in --work')
+    elif fig4c:
         try:
             summary['fig4c'] = distance_check(ck, full, out / 'fig4c_distance.png')
         except ImportError as exc:   # no simulator in this install

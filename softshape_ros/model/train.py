@@ -15,6 +15,7 @@ import hashlib
 import math
 import os
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -24,19 +25,20 @@ from tqdm import tqdm
 from softshape_ros.data import load_dataset
 from softshape_ros.model.checkpoint import save_checkpoint
 from softshape_ros.model.data import split_indices, to_tensors
+from softshape_ros.model import data as model_data
 from softshape_ros.model import networks
 from softshape_ros.model.networks import build_network
 
 
-# Adam learning rates chosen on the simulated 1000-sample stereo set at 300 steps (README,
-# "The visual forward model"): each network at its own best, so the comparison is fair.
+# Adam learning rates, each network's best of three on the simulated 1000-sample stereo set
+# at 300 steps (README, "Design study"), so the comparison is fair.
 DEFAULT_LR = {'paper': 1e-3, 'ours': 4e-3}
 
 
 def code_stamp() -> str:
-    """Hash of the network and training code: results of other code are never reused."""
-    code = b''.join(open(f, 'rb').read() for f in (networks.__file__, __file__))
-    return hashlib.sha256(code).hexdigest()[:12]
+    """Hash of the network, data and training code: results of other code are never reused."""
+    files = (networks.__file__, model_data.__file__, __file__)
+    return hashlib.sha256(b''.join(Path(f).read_bytes() for f in files)).hexdigest()[:12]
 
 
 @dataclass
@@ -133,7 +135,9 @@ def _train(dataset, config, out, indices, progress, desc, rank, world) -> TrainR
     torch.manual_seed(config.seed)
     net = build_network(config.arch, len(ds.views), ds.channels, **config.arch_params)
     model = torch.nn.parallel.DistributedDataParallel(net) if world > 1 else net
-    lr = DEFAULT_LR.get(config.arch, 1e-3) if config.lr is None else config.lr
+    if config.lr is None and config.arch not in DEFAULT_LR:
+        raise ValueError(f'no default learning rate for architecture {config.arch!r}: give lr')
+    lr = DEFAULT_LR[config.arch] if config.lr is None else config.lr
     if not (lr > 0 and math.isfinite(lr)):
         raise ValueError(f'learning rate must be a positive number, got {lr}')
     opt = torch.optim.Adam(net.parameters(), lr=lr)
