@@ -29,61 +29,40 @@ import softshape_ros.model.train as train_module
 from softshape_ros.data import load_dataset
 from softshape_ros.model.data import to_tensors
 from softshape_ros.model.metrics import RobotSilhouette, evaluate_arrays
-from softshape_ros.model.networks import N_PRESSURES, Stage, build_network, coordinate_planes
+from softshape_ros.model.networks import OursNet, build_network, coordinate_planes
 from softshape_ros.model.reproduce import ReproConfig, plan, select_views
 
 
-class VariantNet(nn.Module):
+class VariantNet(OursNet):
     """``ours`` with options that were tried and lost: a pressure map, coords in the decoder."""
 
     def __init__(self, image_channels, widths=(16, 32, 64, 64), cond=64, coords=True,
                  spatial=False, decoder_coords=False):
-        super().__init__()
-        self.coords, self.spatial, self.decoder_coords = coords, spatial, decoder_coords
-        self.cond = nn.Sequential(nn.Linear(N_PRESSURES, cond), nn.ReLU(),
-                                  nn.Linear(cond, cond), nn.ReLU())
-        c = image_channels + N_PRESSURES + (2 if coords else 0)
-        self.down, self.up, self.merge = nn.ModuleList(), nn.ModuleList(), nn.ModuleList()
-        for w in widths:
-            self.down.append(Stage(nn.Conv2d(c, w, 4, 2, 1), w))
-            c = w
+        super().__init__(image_channels, widths, cond, coords)
+        self.spatial, self.decoder_coords = spatial, decoder_coords
         if spatial:     # the actuation drawn straight into the 4x4 bottleneck
             self.smap = nn.Linear(cond, widths[-1] * 16)
-        extra = 2 if decoder_coords else 0
-        for w in reversed(widths[:-1]):
-            self.up.append(Stage(nn.ConvTranspose2d(c, w, 4, 2, 1), w))
-            self.merge.append(Stage(nn.Conv2d(2 * w + extra, w, 3, 1, 1), w))
-            c = w
-        stages = [*self.down, *[s for pair in zip(self.up, self.merge) for s in pair]]
-        self.split = [2 * s.channels for s in stages]
-        self.film = nn.Linear(cond, sum(self.split))
-        nn.init.zeros_(self.film.weight)
-        nn.init.zeros_(self.film.bias)
-        self.head = nn.ConvTranspose2d(c, image_channels, 4, 2, 1)
-        nn.init.zeros_(self.head.weight)
-        nn.init.zeros_(self.head.bias)
+        if decoder_coords:
+            for m in self.merge:
+                m.conv = nn.Conv2d(m.conv.in_channels + 2, m.channels, 3, 1, 1)
 
     def forward(self, image, pressure):
-        b, _, h, w = image.shape
         c = self.cond(pressure)
-        films = iter(self.film(c)[:, :, None, None].split(self.split, 1))
-        parts = [image, pressure[:, :, None, None].expand(b, N_PRESSURES, h, w)]
-        if self.coords:
-            parts.append(coordinate_planes(b, h, w, image))
-        x = torch.cat(parts, 1)
+        films = self.films(c)
+        x = self.inputs(image, pressure)
         skips = []
         for stage in self.down:
-            x = stage(x, *next(films).chunk(2, 1))
+            x = stage(x, *next(films))
             skips.append(x)
         skips.pop()
         if self.spatial:
-            x = torch.relu(x + self.smap(c).view(b, -1, 4, 4))
+            x = torch.relu(x + self.smap(c).view(len(x), -1, 4, 4))
         for up, merge in zip(self.up, self.merge):
-            x = up(x, *next(films).chunk(2, 1))
+            x = up(x, *next(films))
             m = torch.cat([x, skips.pop()], 1)
             if self.decoder_coords:
-                m = torch.cat([m, coordinate_planes(b, m.shape[2], m.shape[3], m)], 1)
-            x = merge(m, *next(films).chunk(2, 1))
+                m = torch.cat([m, coordinate_planes(len(m), *m.shape[2:], m)], 1)
+            x = merge(m, *next(films))
         return image + self.head(x)
 
 

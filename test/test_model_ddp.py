@@ -19,7 +19,8 @@ SCRIPT = '''
 import os, sys
 from safetensors.torch import save_file
 from softshape_ros.model.train import TrainConfig, train
-cfg = TrainConfig(arch='ours', batch_size=16, max_steps=12, eval_every=4, threads=1, seed=2)
+cfg = TrainConfig(arch='ours', batch_size=16, max_steps=12, eval_every=4, threads=1, seed=2,
+                  lr=1e-3)
 res = train(sys.argv[1], cfg, out=sys.argv[2], progress=False)
 sd = {k: v.contiguous() for k, v in res.model.state_dict().items()}
 save_file(sd, os.path.join(sys.argv[3], 'rank%s.safetensors' % os.environ['RANK']))
@@ -44,12 +45,14 @@ def test_ddp_two_processes_end_with_identical_weights(tmp_path):
     assert cfg['training']['world_size'] == 2
     assert all(torch.equal(model.state_dict()[k], r0[k]) for k in r0)
     # Splitting each global batch over two ranks is the same optimisation as one process
-    # taking the whole batch (up to float summation order).
+    # taking the whole batch, up to float summation order (which Adam can amplify for
+    # near-zero gradients by at most ~lr per step: the rate is fixed, not the default).
     single = train(ds, TrainConfig(arch='ours', batch_size=16, max_steps=12, eval_every=4,
-                                   threads=1, seed=2), progress=False)
+                                   threads=1, seed=2, lr=1e-3), progress=False)
     sd = single.model.state_dict()
     worst = max(float((sd[k] - r0[k]).abs().max()) for k in r0)
-    assert worst < 1e-3, worst
+    print('largest weight difference DDP vs one process:', worst)
+    assert worst < 1e-5, worst
     assert json.loads((tmp_path / 'ckpt' / 'config.json').read_text())['training']['steps'] == 12
     # ... and it did train: the weights moved from their seeded start.
     torch.manual_seed(2)

@@ -107,18 +107,26 @@ class OursNet(nn.Module):
         nn.init.zeros_(self.head.weight)
         nn.init.zeros_(self.head.bias)
 
-    def forward(self, image: torch.Tensor, pressure: torch.Tensor) -> torch.Tensor:
+    def inputs(self, image: torch.Tensor, pressure: torch.Tensor) -> torch.Tensor:
+        """Return the first stage's input: images, pressure planes (and coordinates)."""
         b, _, h, w = image.shape
-        films = iter(self.film(self.cond(pressure))[:, :, None, None]
-                     .split(self._film_split, 1))
-
-        def run(stage, x):
-            return stage(x, *next(films).chunk(2, 1))
-
         parts = [image, pressure[:, :, None, None].expand(b, N_PRESSURES, h, w)]
         if self.coords:
             parts.append(coordinate_planes(b, h, w, image))
-        x = torch.cat(parts, 1)
+        return torch.cat(parts, 1)
+
+    def films(self, cond: torch.Tensor):
+        """Return an iterator of (gamma, beta) per stage, in the order forward() runs them."""
+        return (f.chunk(2, 1) for f in self.film(cond)[:, :, None, None]
+                .split(self._film_split, 1))
+
+    def forward(self, image: torch.Tensor, pressure: torch.Tensor) -> torch.Tensor:
+        films = self.films(self.cond(pressure))
+
+        def run(stage, x):
+            return stage(x, *next(films))
+
+        x = self.inputs(image, pressure)
         skips = []
         for stage in self.down:
             x = run(stage, x)
