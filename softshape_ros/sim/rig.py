@@ -85,8 +85,7 @@ class SimRig:
         self.obstacles = []
         self.contact = None
         self._q = None
-        self._q_free = None
-        self._free = None
+        self._free = None           # (q, assembly, pressures) of the last free equilibrium
         sample_n = int(np.ceil(self.rod.length / SPHERE_SPACING_M)) + 1
         self.sample_s = np.linspace(0.0, self.rod.length, sample_n)
 
@@ -100,7 +99,7 @@ class SimRig:
         self.contact = (ContactModel(self.obstacles, *self.contact_args)
                         if self.obstacles and self.contact_on else None)
         self._q = None
-        self._q_free = None
+        self._free = None
 
     def solve(self, pressures_pa) -> SimState:
         """Return the equilibrium for 6 chamber pressures (Pa; clamped to the limits)."""
@@ -109,18 +108,19 @@ class SimRig:
             p = np.clip(p + self.rng.normal(0.0, self.pressure_noise_pa, p.shape), 0.0,
                         self.limits)
         # The free shape first (cheap); it is the answer when it does not touch the object.
-        q0 = self._q_free
-        if q0 is not None:
+        q0 = None
+        if self._free is not None:
             # The Newton step from the last free equilibrium, without assembling there again:
             # the chamber load is linear in the pressures.
+            q0, last, p_last = self._free
             st = self.statics
-            dQ = st.B_ch @ (p - self._free[1])[st.chamber_idx]
+            dQ = st.B_ch @ (p - p_last)[st.chamber_idx]
             try:
-                q0 = q0 + np.linalg.solve(self._free[0].tangent, dQ)
+                q0 = q0 + np.linalg.solve(last.tangent, dQ)
             except np.linalg.LinAlgError:
                 pass
         q, asm, it = self.statics.solve(p, q0=q0)
-        self._q_free, self._free = q, (asm, p)
+        self._free = (q, asm, p)
         if self.contact is not None:
             # The contact model alone decides: with no candidate it adds nothing to asm.
             _, info = self.contact(self.rod, asm.kin)

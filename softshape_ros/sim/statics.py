@@ -16,7 +16,6 @@ from everything distal). A solve that does not converge raises :class:`SolverErr
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from functools import partial
 
 import numpy as np
 
@@ -327,7 +326,7 @@ class Statics:
             scale = max(scale, float(np.abs(Qp).max()))
         elif terms:
             # Tangent only: deferred until the Newton step asks for it.
-            deferred = partial(lambda *a: self._geometric(*a)[1], kin, terms, is_point, quad)
+            deferred = lambda: self._geometric(kin, terms, is_point, quad)[1]  # noqa: E731
         energies.append(float(extra.get('energy', 0.0)))
         energy = float(sum(energies)) if conservative else None
         return Assembly(R, Kt, scale, kin, extra, energy, float(sum(abs(e) for e in energies)),
