@@ -150,3 +150,45 @@ def test_closed_form_sdf_hessians_match_finite_differences(kind):
     # Away from the medial axis and edges (where the Hessian jumps), they agree closely.
     err = np.abs(H - fd).max(axis=(1, 2)) / (1.0 + np.abs(fd).max(axis=(1, 2)))
     assert np.median(err) < 1e-6 and np.mean(err < 1e-4) > 0.95
+
+
+def _qp_by_enumeration(H, r, A, lo):
+    """Return the optimum of min 1/2 x^T H x + r^T x s.t. A x >= lo over all active sets."""
+    import itertools
+    best, best_f = None, np.inf
+    for k in range(len(lo) + 1):
+        for act in itertools.combinations(range(len(lo)), k):
+            act = list(act)
+            n = len(r)
+            K = np.block([[H, -A[act].T], [A[act], np.zeros((k, k))]])
+            sol = np.linalg.solve(K, np.concatenate([-r, lo[act]]))
+            x, mult = sol[:n], sol[n:]
+            if np.all(mult >= -1e-12) and np.all(A @ x >= lo - 1e-10):
+                f = 0.5 * x @ H @ x + r @ x
+                if f < best_f:
+                    best, best_f = x, f
+    return best
+
+
+def test_step_projection_solves_the_newton_qp_and_keeps_every_constraint():
+    # The active-set step must equal the QP optimum min 1/2 dq^T H dq + r^T dq s.t.
+    # A dq >= lo (found by trying every active set), and leave a feasible step alone.
+    from softshape_ros.sim.statics import _project
+    rng = np.random.default_rng(3)
+    active = []
+    for trial in range(20):
+        n, m = 8, 5
+        M = rng.normal(size=(n, n))
+        H = M @ M.T + n * np.eye(n)
+        r = 8.0 * rng.normal(size=n)      # large: several constraints active
+        A = rng.normal(size=(m, n))
+        lo = -rng.uniform(0.05, 0.5, m)
+        dq0 = -np.linalg.solve(H, r)
+        dq = _project(dq0, np.linalg.cholesky(H), A, lo)
+        assert np.all(A @ dq >= lo - 1e-10)
+        if np.all(A @ dq0 >= lo):
+            assert np.array_equal(dq, dq0)
+            continue
+        assert np.allclose(dq, _qp_by_enumeration(H, r, A, lo), atol=1e-9), trial
+        active.append(int(np.sum(np.abs(A @ dq - lo) < 1e-9)))
+    assert max(active) >= 3         # the test reaches several active constraints

@@ -34,8 +34,9 @@ DEFAULT_SMOOTHING_M = 2.0e-5
 STIFFENING_DEPTH_M = 2.0e-4     # p0: the penalty doubles its stiffness at 0.2 mm
 _NEAR_M = 3e-3          # refine minima of sampled gaps below this (samples <= 4.5 mm apart)
 _SUB = 8                # gap slope samples per node interval (<= 0.6 mm apart)
-# A Newton step may press a free node this deep (linearised): one smoothing length. At
-# 0.1 mm the penalty overshoots (~3 N, tangent indefinite) and the next step jumps back out.
+# A Newton step may press a free node (or a lifted contact) this deep, linearised: one
+# smoothing length. At 0.1 mm the penalty overshoots (~3 N, tangent indefinite) and the next
+# step jumps back out.
 STEP_DEPTH_M = 2e-5
 _CUTOFF = 30.0          # gaps beyond 30 smoothing lengths carry no force (< 1e-13 k delta)
 # Quintic Hermite basis (rows) in powers of s: control values p0, h p0', h^2 p0'', h^2 p1'',
@@ -97,26 +98,35 @@ class ContactModel:
         self.k, self.delta = float(stiffness), float(smoothing)
         self._grid_cache = None
 
-    def step_limit(self, rod, kin, move, depth: float = STEP_DEPTH_M) -> float:
+    def step_constraints(self, rod, kin, info=None, depth: float = STEP_DEPTH_M):
         """
-        Return the largest step fraction that keeps linearised node motion ``move`` (N, 3) out.
+        Return (A, lo): linearised gaps that a Newton step must keep, ``A dq >= lo``.
 
-        Only nodes now outside are watched (those inside are the contacts the Newton model
-        already carries); a full Newton step from a free or touching shape otherwise
-        swings the rest of the tube deep into the object and the line search backtracks
-        through several assemblies to find out.
+        Each node now outside may press at most ``depth`` in (``gap + a dq >= -depth``):
+        a full Newton step from a free or touching shape otherwise swings the rest of the
+        tube deep into the object, where the stiffening penalty overshoots and the line
+        search backtracks through several assemblies. Each contact may press to
+        ``depth`` or double its penetration: where it lifts off its penalty is nearly
+        flat and the Newton model alone would send it millimetres deep.
         """
         pts = kin.g[:, :3, 3]
         rad = rod.radii[rod.locate(rod.node_X)[0]]
-        alpha = 1.0
+        rows, lo = [], []
+        if info and info.get('contacts'):
+            gap = np.array([c.gap_m for c in info['contacts']])
+            keep = ~np.array([c.ridge for c in info['contacts']])
+            rows.append(info['gap_grad'][keep])
+            lo.append(np.minimum(2.0 * gap[keep], -depth) - gap[keep])
         for obj in self.obstacles:
             d, n = obj.sdf(pts)
             gap = d - rad
-            rate = np.einsum('ki,ki->k', n, move)
-            m = (gap > 0) & (rate < 0) & (gap + rate < -depth)
-            if m.any():
-                alpha = min(alpha, float(((gap[m] + depth) / -rate[m]).min()))
-        return alpha
+            k = np.nonzero(gap > 0)[0]
+            if len(k):
+                rows.append(np.einsum('ki,kij,kjn->kn', n[k], kin.g[k, :3, :3], kin.J[k, 3:, :]))
+                lo.append(-depth - gap[k])
+        if not rows:
+            return np.zeros((0, rod.n)), np.zeros(0)
+        return np.vstack(rows), np.concatenate(lo)
 
     @staticmethod
     def _hermite(C, X0, h, x):
@@ -306,4 +316,5 @@ class ContactModel:
                                             nn[j].copy(), f[j].copy(), float(gap[j]),
                                             int(oi[j]), bool(sign[j] < 0)))
         info['max_penetration_m'] = max(0.0, float(-gap.min()))
+        info['gap_grad'] = np.einsum('pi,pij,pjn->pn', nn, R, J[:, 3:, :])
         return LoadTerm(X, g, J, f, np.zeros((len(X), 3)), dfdp, extra_k), info

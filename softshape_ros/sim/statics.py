@@ -30,6 +30,47 @@ ENERGY_MERIT_TOL = 1e-5   # below this relative residual the merit is the residu
 STALL_TOL = 1e-7          # relative residual accepted when round-off stops further descent
 
 
+def _project(dq, L, A, lo, max_active: int = 6):
+    """
+    Return the Newton step with the linearised constraints ``A dq >= lo`` (``lo < 0``) kept.
+
+    A small primal active-set QP on the Newton model (``L L^T``, its Hessian): the most
+    violated constraint joins the active set and the step is solved again on it. A step
+    along an object then slides along the surface instead of being cut short. Should the
+    active set run out, the step is scaled back until every constraint holds.
+    """
+    if len(lo) == 0:
+        return dq
+    act, dq0 = [], dq
+    for _ in range(max_active):
+        viol = A @ dq - lo
+        viol[act] = np.inf
+        i = int(np.argmin(viol))
+        if viol[i] >= 0.0:
+            return dq
+        act.append(i)
+        while act:
+            Aw = A[act]
+            Y = np.linalg.solve(L.T, np.linalg.solve(L, Aw.T))        # H^-1 A_W^T
+            try:
+                lam = np.linalg.solve(Aw @ Y, lo[act] - Aw @ dq0)
+            except np.linalg.LinAlgError:
+                act.pop()
+                continue
+            if (lam >= 0.0).all():
+                dq = dq0 + Y @ lam
+                break
+            # A constraint that would pull (negative multiplier) leaves the set.
+            act = [a for a, m in zip(act, lam) if m >= 0.0]
+        else:
+            dq = dq0
+    rate = A @ dq
+    bad = rate < lo
+    if bad.any():
+        dq = dq * float((lo[bad] / rate[bad]).min())
+    return dq
+
+
 class SolverError(RuntimeError):
     """The statics solve did not converge: no shape is returned rather than a wrong one."""
 
@@ -414,6 +455,8 @@ class Statics:
                 return False, q, asm, it
             mu = shift
             dq = -np.linalg.solve(L.T, np.linalg.solve(L, r))
+            if hasattr(contact, 'step_constraints'):
+                dq = _project(dq, L, *contact.step_constraints(rod, asm.kin, asm.extra))
             big = float(np.abs(dq).max())
             if not np.isfinite(big):
                 return False, q, asm, it
@@ -427,10 +470,6 @@ class Statics:
                     dq *= radius / mv
                     move *= radius / mv
                     mv = radius
-                if hasattr(contact, 'step_limit'):
-                    cap = contact.step_limit(rod, kin, move)
-                    dq *= cap
-                    mv *= cap
             slope = float(r @ dq)
             w0 = wnorm(asm)
             alpha, accepted = 1.0, False
