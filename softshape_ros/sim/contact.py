@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import spence
 
-from softshape_ros.sim.lie import cross, skew
+from softshape_ros.sim.lie import ad, cross, skew
 from softshape_ros.sim.rod import XI_STAR
 from softshape_ros.sim.statics import LoadTerm
 
@@ -38,6 +38,9 @@ _SUB = 8                # gap slope samples per node interval (<= 0.6 mm apart)
 # smoothing length. At 0.1 mm the penalty overshoots (~3 N, tangent indefinite) and the next
 # step jumps back out.
 STEP_DEPTH_M = 2e-5
+# Polish steps up to this long move the contact frame to first order (error ~1e-12 m);
+# longer ones (1 in 10) evaluate the rod there again.
+_MOVE_M = 1e-7
 _CUTOFF = 30.0          # gaps beyond 30 smoothing lengths carry no force (< 1e-13 k delta)
 # Quintic Hermite basis (rows) in powers of s: control values p0, h p0', h^2 p0'', h^2 p1'',
 # h p1', p1. With the exact curvature at the nodes its minimiser is ~1e-8 m from the rod's.
@@ -213,39 +216,27 @@ class ContactModel:
             hi = np.where(right, hi, x)
             good = sign * d2 > 1e-12
             newton = x - d1 / np.where(good, d2, 1.0)
-            xn = np.where(good & (newton >= lo) & (newton <= hi), newton, 0.5 * (lo + hi))
-            done = np.abs(xn - x) < 1e-13
+            ok = good & (newton >= lo) & (newton <= hi)
+            xn = np.where(ok, newton, 0.5 * (lo + hi))
+            # A Newton step under 1e-10 m leaves x ~1e-17 m from the root (quadratic).
+            done = ok & (np.abs(xn - x) < 1e-10)
             x = xn
             if done.all():
                 break
         return x
 
-    def _polish(self, rod, kin, X, oi, sign, lo, hi):
-        """
-        Take one Newton step on the exact rod from the Hermite minimiser.
-
-        The tangent's sliding term is exact for the rod's own gap minimum; left on the
-        interpolant's, Newton converges only linearly (rate ~ 5e-2 seen).
-        """
-        inner = X < rod.length - 1e-12
-        if not inner.any():
-            return X
-        g, _ = rod.at(kin, X, jac=False)
-        xi = rod.strain(kin.q, X)
-        R = g[:, :3, :3]
-        tv = np.einsum('pij,pj->pi', R, xi[:, 3:])
-        pp = np.einsum('pij,pj->pi', R, cross(xi[:, :3], xi[:, 3:]))
-        d1 = np.zeros(len(X))
-        d2 = np.zeros(len(X))
+    def _sdf_hessian(self, oi, p):
+        """Return distance, normal and Hessian at points ``p`` of the objects ``oi``."""
+        d = np.zeros(len(p))
+        nn = np.zeros((len(p), 3))
+        H = np.zeros((len(p), 3, 3))
         for o, obj in enumerate(self.obstacles):
             m = oi == o
+            if m.all():
+                return obj.sdf_hessian(p)
             if m.any():
-                _, n, H = obj.sdf_hessian(g[m, :3, 3])
-                d1[m] = np.einsum('pi,pi->p', n, tv[m])
-                d2[m] = (np.einsum('pi,pij,pj->p', tv[m], H, tv[m])
-                         + np.einsum('pi,pi->p', n, pp[m]))
-        good = inner & (sign * d2 > 1e-12)
-        return np.where(good, np.clip(X - d1 / np.where(good, d2, 1.0), lo, hi), X)
+                d[m], nn[m], H[m] = obj.sdf_hessian(p[m])
+        return d, nn, H
 
     def __call__(self, rod, kin):
         """
@@ -264,27 +255,57 @@ class ContactModel:
         X = np.array([c[0] for c in cands])
         oi = np.array([c[1] for c in cands])
         sign = np.array([c[2] for c in cands])
-        X = self._polish(rod, kin, X, oi, sign, np.array([c[3] for c in cands]),
-                         np.array([c[4] for c in cands]))
+        lo = np.array([c[3] for c in cands])
+        hi = np.array([c[4] for c in cands])
+        # The Hermite minimiser is ~1e-8 m from the rod's: one Newton step on the exact rod
+        # (the tangent's sliding term is exact for the rod's own gap minimum only; left on
+        # the interpolant's, Newton converged linearly, rate ~5e-2), with the frame,
+        # Jacobian and distance moved there to first order when the step is short.
         g, J = rod.at(kin, X)
-        p = g[:, :3, 3]
         seg, xloc = rod.locate(X)
-        rad = rod.radii[seg]
         phi = rod.phi(seg, xloc)
         xi = phi @ kin.q + XI_STAR
-        d = np.zeros(len(X))
-        nn = np.zeros((len(X), 3))
-        H = np.zeros((len(X), 3, 3))
-        for o, obj in enumerate(self.obstacles):
-            m = oi == o
-            if m.any():
-                d[m], nn[m], H[m] = obj.sdf_hessian(p[m])
+        R, p = g[:, :3, :3], g[:, :3, 3]
+        d, nn, H = self._sdf_hessian(oi, p)
+        tv = np.einsum('pij,pj->pi', R, xi[:, 3:])
+        pp = np.einsum('pij,pj->pi', R, cross(xi[:, :3], xi[:, 3:]))
+        Htv = np.einsum('pij,pj->pi', H, tv)
+        d1 = np.einsum('pi,pi->p', nn, tv)
+        gxx = np.einsum('pi,pi->p', tv, Htv) + np.einsum('pi,pi->p', nn, pp)
+        good = (X < rod.length - 1e-12) & (sign * gxx > 1e-12)
+        dX = np.where(good, np.clip(X - d1 / np.where(good, gxx, 1.0), lo, hi) - X, 0.0)
+        if np.any(dX != 0.0):
+            X = X + dX
+            c = dX[:, None]
+            dp = c * tv + 0.5 * c * c * pp
+            R = R + c[:, :, None] * (R @ skew(xi[:, :3]))
+            p = p + dp
+            J = J + c[:, :, None] * (phi - ad(xi) @ J)
+            g = np.zeros_like(g)
+            g[:, :3, :3], g[:, :3, 3], g[:, 3, 3] = R, p, 1.0
+            seg, xloc = rod.locate(X)
+            phi = rod.phi(seg, xloc)
+            xi = phi @ kin.q + XI_STAR
+            d = d + np.einsum('pi,pi->p', nn, dp)
+            nn = nn + np.einsum('pij,pj->pi', H, dp)
+            far = np.abs(dX) > _MOVE_M
+            if far.any():
+                # A long polish step (a flat gap profile): evaluate there exactly.
+                gf, Jf = rod.at(kin, X[far])
+                g[far], J[far], R[far], p[far] = gf, Jf, gf[:, :3, :3], gf[:, :3, 3]
+                d[far], nn[far], H[far] = self._sdf_hessian(oi[far], p[far])
+            tv = np.einsum('pij,pj->pi', R, xi[:, 3:])
+            pp = np.einsum('pij,pj->pi', R, cross(xi[:, :3], xi[:, 3:]))
+            Htv = np.einsum('pij,pj->pi', H, tv)
+            gxx = np.einsum('pi,pi->p', tv, Htv) + np.einsum('pi,pi->p', nn, pp)
+        rad = rod.radii[seg]
         gap = d - rad
         k = np.nonzero(gap <= _CUTOFF * self.delta)[0]
         if not len(k):
             return None, info
         X, g, J, p, rad, phi, xi = X[k], g[k], J[k], p[k], rad[k], phi[k], xi[k]
         nn, H, gap, sign, oi = nn[k], H[k], gap[k], sign[k], oi[k]
+        R, tv, Htv, gxx = R[k], tv[k], Htv[k], gxx[k]
         z = -gap / self.delta
         pen = self.delta * _softplus(z)
         lam = self.k * pen * (1.0 + pen / STIFFENING_DEPTH_M)
@@ -294,17 +315,13 @@ class ContactModel:
             + (sign * lam)[:, None, None] * H
         # The contact point slides with q (a critical point of the gap over X): the
         # min-function's Hessian adds lambda * gXq^T gXq / gXX to the tangent.
-        R = g[:, :3, :3]
-        tv = np.einsum('pij,pj->pi', R, xi[:, 3:])
-        pp = np.einsum('pij,pj->pi', R, cross(xi[:, :3], xi[:, 3:]))
-        gxx = np.einsum('pi,pij,pj->p', tv, H, tv) + np.einsum('pi,pi->p', nn, pp)
         slide = (X < rod.length - 1e-12) & (sign * gxx > 1e-9)
         extra_k = np.zeros((rod.n, rod.n))
         if slide.any():
             s = np.nonzero(slide)[0]
             D = R[s] @ J[s, 3:, :]
             dt = R[s] @ (-skew(xi[s, 3:]) @ J[s, :3, :] + phi[s, 3:, :])
-            gxq = np.einsum('pi,pin->pn', np.einsum('pij,pj->pi', H[s], tv[s]), D) \
+            gxq = np.einsum('pi,pin->pn', Htv[s], D) \
                 + np.einsum('pi,pin->pn', nn[s], dt)
             extra_k = np.einsum('p,pn,pm->nm', sign[s] * lam[s] / gxx[s], gxq, gxq)
         # Potential of the stiffening part taken unsmoothed (it only serves as a merit).

@@ -88,6 +88,7 @@ class SimRig:
         self._free = None           # (q, assembly, pressures) of the last free equilibrium
         sample_n = int(np.ceil(self.rod.length / SPHERE_SPACING_M)) + 1
         self.sample_s = np.linspace(0.0, self.rod.length, sample_n)
+        self._node_radii = self.rod.radii[self.rod.locate(self.rod.node_X)[0]]
 
     def set_scene(self, scene: Scene | None) -> None:
         """Place the scene's object (None or object 'none': the robot alone)."""
@@ -122,9 +123,11 @@ class SimRig:
         q, asm, it = self.statics.solve(p, q0=q0)
         self._free = (q, asm, p)
         if self.contact is not None:
-            # The contact model alone decides: with no candidate it adds nothing to asm.
-            _, info = self.contact(self.rod, asm.kin)
-            if info['contacts']:
+            # A node inside an object settles it; otherwise the contact model decides (a
+            # contact between nodes, or one within the penalty's reach): with no candidate
+            # it adds nothing to asm.
+            info = None if self._node_gap(q) < 0.0 else self.contact(self.rod, asm.kin)[1]
+            if info is None or info['contacts']:
                 q, asm, it2 = self._solve_contact(p, self._touching_start(q))
                 it += it2
             else:
@@ -156,6 +159,12 @@ class SimRig:
                 self.contact.k = k_full
         raise error
 
+    def _node_gap(self, q) -> float:
+        """Return the least gap (m) between the tube at the nodes and the objects."""
+        rod = self.rod
+        pts = rod.forward(q, jac=False).g[:, :3, 3]
+        return min(float((o.sdf(pts)[0] - self._node_radii).min()) for o in self.obstacles)
+
     def _touching_start(self, q_free):
         """
         Return the shape on the way from the last one to ``q_free`` that just touches.
@@ -164,13 +173,10 @@ class SimRig:
         with the tip already deep in the object costs many damped Newton steps.
         """
         q_prev = self._q if self._q is not None else np.zeros_like(q_free)
-        rod = self.rod
-        rad = rod.radii[rod.locate(rod.node_X)[0]]
 
         def gap(t):
             # At the nodes (<= 4.2 mm apart, the tip included): no interpolation needed.
-            pts = rod.forward(q_prev + t * (q_free - q_prev), jac=False).g[:, :3, 3]
-            return min(float((o.sdf(pts)[0] - rad).min()) for o in self.obstacles)
+            return self._node_gap(q_prev + t * (q_free - q_prev))
 
         a, b = 0.0, 1.0
         ga, gb = gap(a), gap(b)
