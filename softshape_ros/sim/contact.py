@@ -41,6 +41,7 @@ STEP_DEPTH_M = 2e-5
 # Polish steps up to this long move the contact frame to first order (error ~1e-12 m);
 # longer ones (1 in 10) evaluate the rod there again.
 _MOVE_M = 1e-7
+_POLISH_STEPS = 4       # exact-rod Newton steps at most (a flat gap takes 2-3)
 _CUTOFF = 30.0          # gaps beyond 30 smoothing lengths carry no force (< 1e-13 k delta)
 # Quintic Hermite basis (rows) in powers of s: control values p0, h p0', h^2 p0'', h^2 p1'',
 # h p1', p1. With the exact curvature at the nodes its minimiser is ~1e-8 m from the rod's.
@@ -238,6 +239,79 @@ class ContactModel:
                 d[m], nn[m], H[m] = obj.sdf_hessian(p[m])
         return d, nn, H
 
+    def _at(self, rod, kin, X, oi):
+        """Return the rod and the object at arc lengths X: frames, strain and distance."""
+        g, J = rod.at(kin, X)
+        seg, xloc = rod.locate(X)
+        phi = rod.phi(seg, xloc)
+        xi = phi @ kin.q + XI_STAR
+        d, nn, H = self._sdf_hessian(oi, g[:, :3, 3])
+        return [g, J, phi, xi, seg, d, nn, H]
+
+    def _polish(self, rod, kin, X, oi, sign, lo, hi):
+        """
+        Newton on the exact rod from the Hermite minimiser: return X and the state there.
+
+        The Hermite minimiser is ~1e-8 m from the rod's, so one step is usually enough and
+        the frame, Jacobian and distance move there to first order (error ~1e-12 m, no
+        second rod evaluation). A step longer than 0.1 um (a flat gap profile, where the
+        robot lies along the object) evaluates the rod again and steps again: the
+        tangent's sliding term is exact at the rod's own gap minimum only, and left short
+        of it Newton converges linearly.
+        """
+        state = self._at(rod, kin, X, oi)
+        rows = np.arange(len(X))
+        for sweep in range(_POLISH_STEPS + 1):
+            g, J, phi, xi, seg, d, nn, H = (a[rows] for a in state)
+            R = g[:, :3, :3]
+            tv = np.einsum('pij,pj->pi', R, xi[:, 3:])
+            pp = np.einsum('pij,pj->pi', R, cross(xi[:, :3], xi[:, 3:]))
+            Htv = np.einsum('pij,pj->pi', H, tv)
+            d1 = np.einsum('pi,pi->p', nn, tv)
+            gxx = np.einsum('pi,pi->p', tv, Htv) + np.einsum('pi,pi->p', nn, pp)
+            x = X[rows]
+            good = (x < rod.length - 1e-12) & (sign[rows] * gxx > 1e-12)
+            dX = np.where(good, np.clip(x - d1 / np.where(good, gxx, 1.0), lo[rows],
+                                        hi[rows]) - x, 0.0)
+            if sweep == 0:
+                extra = [np.zeros((len(X),) + a.shape[1:]) for a in (tv, Htv, gxx)]
+            far = np.abs(dX) > _MOVE_M
+            if sweep == _POLISH_STEPS:
+                far[:] = False
+                dX[:] = 0.0
+            near = ~far & (dX != 0.0)
+            if near.any():
+                c = dX[near, None]
+                dp = c * tv[near] + 0.5 * c * c * pp[near]
+                Rn = R[near] + c[:, :, None] * (R[near] @ skew(xi[near, :3]))
+                g[near, :3, :3] = Rn
+                g[near, :3, 3] += dp
+                J[near] += c[:, :, None] * (phi[near] - ad(xi[near]) @ J[near])
+                x[near] += dX[near]
+                seg[near], xloc = rod.locate(x[near])
+                phi[near] = rod.phi(seg[near], xloc)
+                xi[near] = phi[near] @ kin.q + XI_STAR
+                d[near] += np.einsum('pi,pi->p', nn[near], dp)
+                nn[near] += np.einsum('pij,pj->pi', H[near], dp)
+                tv[near] = np.einsum('pij,pj->pi', Rn, xi[near, 3:])
+                pp[near] = np.einsum('pij,pj->pi', Rn, cross(xi[near, :3], xi[near, 3:]))
+                Htv[near] = np.einsum('pij,pj->pi', H[near], tv[near])
+                gxx[near] = (np.einsum('pi,pi->p', tv[near], Htv[near])
+                             + np.einsum('pi,pi->p', nn[near], pp[near]))
+                X[rows] = x
+            for a, v in zip(state, (g, J, phi, xi, seg, d, nn, H)):
+                a[rows] = v
+            for a, v in zip(extra, (tv, Htv, gxx)):
+                a[rows] = v
+            if not far.any():
+                break
+            rows = rows[far]
+            X[rows] += dX[far]
+            for a, v in zip(state, self._at(rod, kin, X[rows], oi[rows])):
+                a[rows] = v
+        g, J, phi, xi, seg, d, nn, H = state
+        return X, (g, J, phi, xi, seg, d, nn, H, *extra)
+
     def __call__(self, rod, kin):
         """
         Return the contact load term and info (contacts, penetration, potential).
@@ -257,47 +331,9 @@ class ContactModel:
         sign = np.array([c[2] for c in cands])
         lo = np.array([c[3] for c in cands])
         hi = np.array([c[4] for c in cands])
-        # The Hermite minimiser is ~1e-8 m from the rod's: one Newton step on the exact rod
-        # (the tangent's sliding term is exact for the rod's own gap minimum only; left on
-        # the interpolant's, Newton converged linearly, rate ~5e-2), with the frame,
-        # Jacobian and distance moved there to first order when the step is short.
-        g, J = rod.at(kin, X)
-        seg, xloc = rod.locate(X)
-        phi = rod.phi(seg, xloc)
-        xi = phi @ kin.q + XI_STAR
+        X, (g, J, phi, xi, seg, d, nn, H, tv, Htv, gxx) = self._polish(rod, kin, X, oi, sign,
+                                                                       lo, hi)
         R, p = g[:, :3, :3], g[:, :3, 3]
-        d, nn, H = self._sdf_hessian(oi, p)
-        tv = np.einsum('pij,pj->pi', R, xi[:, 3:])
-        pp = np.einsum('pij,pj->pi', R, cross(xi[:, :3], xi[:, 3:]))
-        Htv = np.einsum('pij,pj->pi', H, tv)
-        d1 = np.einsum('pi,pi->p', nn, tv)
-        gxx = np.einsum('pi,pi->p', tv, Htv) + np.einsum('pi,pi->p', nn, pp)
-        good = (X < rod.length - 1e-12) & (sign * gxx > 1e-12)
-        dX = np.where(good, np.clip(X - d1 / np.where(good, gxx, 1.0), lo, hi) - X, 0.0)
-        if np.any(dX != 0.0):
-            X = X + dX
-            c = dX[:, None]
-            dp = c * tv + 0.5 * c * c * pp
-            R = R + c[:, :, None] * (R @ skew(xi[:, :3]))
-            p = p + dp
-            J = J + c[:, :, None] * (phi - ad(xi) @ J)
-            g = np.zeros_like(g)
-            g[:, :3, :3], g[:, :3, 3], g[:, 3, 3] = R, p, 1.0
-            seg, xloc = rod.locate(X)
-            phi = rod.phi(seg, xloc)
-            xi = phi @ kin.q + XI_STAR
-            d = d + np.einsum('pi,pi->p', nn, dp)
-            nn = nn + np.einsum('pij,pj->pi', H, dp)
-            far = np.abs(dX) > _MOVE_M
-            if far.any():
-                # A long polish step (a flat gap profile): evaluate there exactly.
-                gf, Jf = rod.at(kin, X[far])
-                g[far], J[far], R[far], p[far] = gf, Jf, gf[:, :3, :3], gf[:, :3, 3]
-                d[far], nn[far], H[far] = self._sdf_hessian(oi[far], p[far])
-            tv = np.einsum('pij,pj->pi', R, xi[:, 3:])
-            pp = np.einsum('pij,pj->pi', R, cross(xi[:, :3], xi[:, 3:]))
-            Htv = np.einsum('pij,pj->pi', H, tv)
-            gxx = np.einsum('pi,pi->p', tv, Htv) + np.einsum('pi,pi->p', nn, pp)
         rad = rod.radii[seg]
         gap = d - rad
         k = np.nonzero(gap <= _CUTOFF * self.delta)[0]
