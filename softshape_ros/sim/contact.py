@@ -254,63 +254,58 @@ class ContactModel:
 
         The Hermite minimiser is ~1e-8 m from the rod's, so one step is usually enough and
         the frame, Jacobian and distance move there to first order (error ~1e-12 m, no
-        second rod evaluation). A step longer than 0.1 um (a flat gap profile, where the
-        robot lies along the object) evaluates the rod again and steps again: the
-        tangent's sliding term is exact at the rod's own gap minimum only, and left short
-        of it Newton converges linearly.
+        second rod evaluation; the strain-based sliding terms, tangent only, stay). A step
+        longer than 0.1 um (a flat gap profile, the robot lying along the object)
+        evaluates the rod there and steps again: the tangent's sliding term is exact at
+        the rod's own gap minimum only, and left short of it Newton converges linearly.
         """
         state = self._at(rod, kin, X, oi)
-        rows = np.arange(len(X))
-        for sweep in range(_POLISH_STEPS + 1):
-            g, J, phi, xi, seg, d, nn, H = (a[rows] for a in state)
-            R = g[:, :3, :3]
-            tv = np.einsum('pij,pj->pi', R, xi[:, 3:])
-            pp = np.einsum('pij,pj->pi', R, cross(xi[:, :3], xi[:, 3:]))
-            Htv = np.einsum('pij,pj->pi', H, tv)
-            d1 = np.einsum('pi,pi->p', nn, tv)
-            gxx = np.einsum('pi,pi->p', tv, Htv) + np.einsum('pi,pi->p', nn, pp)
-            x = X[rows]
-            good = (x < rod.length - 1e-12) & (sign[rows] * gxx > 1e-12)
-            dX = np.where(good, np.clip(x - d1 / np.where(good, gxx, 1.0), lo[rows],
-                                        hi[rows]) - x, 0.0)
-            if sweep == 0:
-                extra = [np.zeros((len(X),) + a.shape[1:]) for a in (tv, Htv, gxx)]
-            far = np.abs(dX) > _MOVE_M
-            if sweep == _POLISH_STEPS:
-                far[:] = False
-                dX[:] = 0.0
-            near = ~far & (dX != 0.0)
-            if near.any():
-                c = dX[near, None]
-                dp = c * tv[near] + 0.5 * c * c * pp[near]
-                Rn = R[near] + c[:, :, None] * (R[near] @ skew(xi[near, :3]))
-                g[near, :3, :3] = Rn
-                g[near, :3, 3] += dp
-                J[near] += c[:, :, None] * (phi[near] - ad(xi[near]) @ J[near])
-                x[near] += dX[near]
-                seg[near], xloc = rod.locate(x[near])
-                phi[near] = rod.phi(seg[near], xloc)
-                xi[near] = phi[near] @ kin.q + XI_STAR
-                d[near] += np.einsum('pi,pi->p', nn[near], dp)
-                nn[near] += np.einsum('pij,pj->pi', H[near], dp)
-                tv[near] = np.einsum('pij,pj->pi', Rn, xi[near, 3:])
-                pp[near] = np.einsum('pij,pj->pi', Rn, cross(xi[near, :3], xi[near, 3:]))
-                Htv[near] = np.einsum('pij,pj->pi', H[near], tv[near])
-                gxx[near] = (np.einsum('pi,pi->p', tv[near], Htv[near])
-                             + np.einsum('pi,pi->p', nn[near], pp[near]))
-                X[rows] = x
-            for a, v in zip(state, (g, J, phi, xi, seg, d, nn, H)):
-                a[rows] = v
-            for a, v in zip(extra, (tv, Htv, gxx)):
-                a[rows] = v
-            if not far.any():
-                break
-            rows = rows[far]
-            X[rows] += dX[far]
-            for a, v in zip(state, self._at(rod, kin, X[rows], oi[rows])):
-                a[rows] = v
         g, J, phi, xi, seg, d, nn, H = state
-        return X, (g, J, phi, xi, seg, d, nn, H, *extra)
+        R = g[:, :3, :3]
+        tv = np.einsum('pij,pj->pi', R, xi[:, 3:])
+        pp = np.einsum('pij,pj->pi', R, cross(xi[:, :3], xi[:, 3:]))
+        Htv = np.einsum('pij,pj->pi', H, tv)
+        gxx = np.einsum('pi,pi->p', tv, Htv) + np.einsum('pi,pi->p', nn, pp)
+        dX = self._newton_dX(X, nn, tv, gxx, sign, lo, hi, rod.length)
+        far = np.abs(dX) > _MOVE_M
+        if far.any():
+            rows = np.nonzero(far)[0]
+            for sweep in range(_POLISH_STEPS):
+                X[rows] += dX[rows]
+                sub = self._at(rod, kin, X[rows], oi[rows])
+                for a, v in zip(state, sub):
+                    a[rows] = v
+                Rs = g[rows, :3, :3]
+                tv[rows] = np.einsum('pij,pj->pi', Rs, xi[rows, 3:])
+                pp[rows] = np.einsum('pij,pj->pi', Rs, cross(xi[rows, :3], xi[rows, 3:]))
+                Htv[rows] = np.einsum('pij,pj->pi', H[rows], tv[rows])
+                gxx[rows] = (np.einsum('pi,pi->p', tv[rows], Htv[rows])
+                             + np.einsum('pi,pi->p', nn[rows], pp[rows]))
+                dX[rows] = self._newton_dX(X[rows], nn[rows], tv[rows], gxx[rows],
+                                           sign[rows], lo[rows], hi[rows], rod.length)
+                if sweep == _POLISH_STEPS - 1:
+                    dX[rows] = 0.0
+                rows = rows[np.abs(dX[rows]) > _MOVE_M]
+                if not len(rows):
+                    break
+        if np.any(dX != 0.0):
+            c = dX[:, None]
+            dp = c * tv
+            J = J + c[:, :, None] * (phi - ad(xi) @ J)
+            g = g.copy()
+            g[:, :3, :3] += c[:, :, None] * (R @ skew(xi[:, :3]))
+            g[:, :3, 3] += dp
+            d = d + np.einsum('pi,pi->p', nn, dp)
+            nn = nn + np.einsum('pij,pj->pi', H, dp)
+            X = X + dX
+        return X, (g, J, phi, xi, seg, d, nn, H, tv, Htv, gxx)
+
+    @staticmethod
+    def _newton_dX(X, nn, tv, gxx, sign, lo, hi, length):
+        """Return the Newton step on d phi(p(X)) / dX = 0, kept in the bracket."""
+        d1 = np.einsum('pi,pi->p', nn, tv)
+        good = (X < length - 1e-12) & (sign * gxx > 1e-12)
+        return np.where(good, np.clip(X - d1 / np.where(good, gxx, 1.0), lo, hi) - X, 0.0)
 
     def __call__(self, rod, kin):
         """

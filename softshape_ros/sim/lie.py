@@ -13,14 +13,35 @@ import numpy as np
 _SMALL = 1e-2
 
 
-def skew(v: np.ndarray) -> np.ndarray:
-    """Return the 3x3 cross-product matrix(es) of ``v`` (..., 3)."""
-    v = np.asarray(v, dtype=float)
+def _skew_rows(v):
     out = np.zeros(v.shape[:-1] + (3, 3))
     out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
     out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
     out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
     return out
+
+
+# skew and ad as one product with a constant 0/+-1 matrix (exact): a single numpy call
+# instead of a dozen, which is what these small arrays cost.
+_SKEW = _skew_rows(np.eye(3)).reshape(3, 9)
+
+
+def _ad_rows(x):
+    out = np.zeros(x.shape[:-1] + (6, 6))
+    w, v = _skew_rows(x[..., :3]), _skew_rows(x[..., 3:])
+    out[..., :3, :3] = w
+    out[..., 3:, 3:] = w
+    out[..., 3:, :3] = v
+    return out
+
+
+_AD = _ad_rows(np.eye(6)).reshape(6, 36)
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """Return the 3x3 cross-product matrix(es) of ``v`` (..., 3)."""
+    v = np.asarray(v, dtype=float)
+    return (v @ _SKEW).reshape(v.shape[:-1] + (3, 3))
 
 
 def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -34,12 +55,7 @@ def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def ad(x: np.ndarray) -> np.ndarray:
     """Return the 6x6 adjoint matrix(es) of twists ``x`` (..., 6): ``ad_x y = [x, y]``."""
     x = np.asarray(x, dtype=float)
-    w, v = skew(x[..., :3]), skew(x[..., 3:])
-    out = np.zeros(x.shape[:-1] + (6, 6))
-    out[..., :3, :3] = w
-    out[..., 3:, 3:] = w
-    out[..., 3:, :3] = v
-    return out
+    return (x @ _AD).reshape(x.shape[:-1] + (6, 6))
 
 
 def ad_inv_pose(g: np.ndarray) -> np.ndarray:
@@ -62,21 +78,24 @@ def _coefficients(th2, tangent: bool):
     """
     th = np.sqrt(th2)
     small = th < _SMALL
-    t = np.where(small, 1.0, th) if small.any() else th
+    any_small = bool(small.any())
+    t = np.where(small, 1.0, th) if any_small else th
     s, c = np.sin(t), np.cos(t)
     t2 = t * t
     t3 = t2 * t
     out = [s / t, (1 - c) / t2, (t - s) / t3]
-    series = [1 - th2 / 6 + th2 ** 2 / 120, 0.5 - th2 / 24 + th2 ** 2 / 720,
-              1 / 6 - th2 / 120 + th2 ** 2 / 5040]
     if tangent:
         ts, tc = t * s, t * c
         out += [-(4 - 4 * c - ts) / (2 * t2), (4 * t - 5 * s + tc) / (2 * t3),
                 -(2 - 2 * c - ts) / (2 * t2 * t2), (2 * t - 3 * s + tc) / (2 * t3 * t2)]
-        series += [-(0.5 - th2 ** 2 / 720), 1 / 6 - th2 ** 2 / 5040,
-                   -(1 / 24 - th2 / 360 + th2 ** 2 / 13440),
-                   1 / 120 - th2 / 2520 + th2 ** 2 / 120960]
-    if small.any():
+    if any_small:
+        th4 = th2 * th2
+        series = [1 - th2 / 6 + th4 / 120, 0.5 - th2 / 24 + th4 / 720,
+                  1 / 6 - th2 / 120 + th4 / 5040]
+        if tangent:
+            series += [-(0.5 - th4 / 720), 1 / 6 - th4 / 5040,
+                       -(1 / 24 - th2 / 360 + th4 / 13440),
+                       1 / 120 - th2 / 2520 + th4 / 120960]
         out = [np.where(small, a, b) for a, b in zip(series, out)]
     return out
 
@@ -124,12 +143,12 @@ def dexp_se3(x: np.ndarray) -> np.ndarray:
     return _dexp(x, _coefficients(np.sum(x[..., :3] ** 2, axis=-1), True))
 
 
-def exp_dexp_se3(x: np.ndarray):
-    """Return exp(x), Ad_{exp(-x)} and T(x) sharing one set of trigonometric coefficients."""
+def exp_dexp_se3(x: np.ndarray, adinv: bool = True):
+    """Return exp(x), Ad_{exp(-x)} (None unless ``adinv``) and T(x), sharing coefficients."""
     x = np.asarray(x, dtype=float)
     coef = _coefficients(np.sum(x[..., :3] ** 2, axis=-1), True)
     E = _exp(x, coef)
-    return E, ad_inv_pose(E), _dexp(x, coef)
+    return E, (ad_inv_pose(E) if adinv else None), _dexp(x, coef)
 
 
 def rpy_matrix(rpy) -> np.ndarray:

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from softshape_ros.sim.lie import ad, exp_dexp_se3, exp_se3
+from softshape_ros.sim.lie import ad, ad_inv_pose, exp_dexp_se3, exp_se3, skew
 
 XI_STAR = np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0])
 _Z1, _Z2 = 0.5 - np.sqrt(3.0) / 6.0, 0.5 + np.sqrt(3.0) / 6.0
@@ -173,7 +173,7 @@ class Rod:
         return self.phi(seg, x) @ q + XI_STAR
 
     # -- kinematics --------------------------------------------------------------------
-    def _magnus(self, q, phi1, phi2, h, jac=True):
+    def _magnus(self, q, phi1, phi2, h, jac=True, adinv=True):
         x1 = phi1 @ q + XI_STAR
         x2 = phi2 @ q + XI_STAR
         hh = h[:, None]
@@ -181,7 +181,7 @@ class Rod:
         omega = hh / 2 * (x1 + x2) + _C4 * hh ** 2 * np.einsum('mij,mj->mi', ad1, x2)
         if not jac:
             return exp_se3(omega), None, None
-        E, AdInv, T = exp_dexp_se3(omega)
+        E, AdInv, T = exp_dexp_se3(omega, adinv)
         ad2 = ad(x2)
         S = (hh[:, :, None] / 2 * (phi1 + phi2)
              + _C4 * hh[:, :, None] ** 2 * (ad1 @ phi2 - ad2 @ phi1))
@@ -190,18 +190,30 @@ class Rod:
     def forward(self, q, jac: bool = True) -> Kinematics:
         """Run the forward pass: node poses and (if ``jac``) body Jacobians."""
         q = np.asarray(q, dtype=float)
-        E, AdInv, TS = self._magnus(q, self.phi_z1, self.phi_z2, self.int_h, jac)
+        E, _, TS = self._magnus(q, self.phi_z1, self.phi_z2, self.int_h, jac, adinv=False)
         m = len(self.int_h)
-        g = np.empty((m + 1, 4, 4))
-        g[0] = self.base
-        for k in range(m):
-            g[k + 1] = g[k] @ E[k]
+        # Poses relative to the base: a prefix product (log2(m) batched products instead
+        # of m single ones; numpy's per-call cost dominates these sizes).
+        gr = np.empty((m + 1, 4, 4))
+        gr[0] = np.eye(4)
+        gr[1:] = E
+        step = 1
+        while step <= m:
+            gr[step:] = gr[:-step] @ gr[step:]
+            step *= 2
+        g = self.base @ gr
         J = None
         if jac:
-            J = np.empty((m + 1, 6, self.n))
-            J[0] = 0.0
-            for k in range(m):
-                J[k + 1] = AdInv[k] @ J[k] + TS[k]
+            # Body Jacobian by its spatial (base-frame) form, a running sum:
+            # J_s[k+1] = J_s[k] + Ad_{g_k+1} TS_k, then J[k] = Ad_{g_k}^-1 J_s[k].
+            Rk, pk = gr[1:, :3, :3], gr[1:, :3, 3]
+            Ad = np.zeros((m, 6, 6))
+            Ad[:, :3, :3] = Rk
+            Ad[:, 3:, 3:] = Rk
+            Ad[:, 3:, :3] = skew(pk) @ Rk
+            J = np.zeros((m + 1, 6, self.n))
+            np.cumsum(Ad @ TS, axis=0, out=J[1:])
+            J[1:] = ad_inv_pose(gr[1:]) @ J[1:]
         xi_g = self.phi_g @ q + XI_STAR
         return Kinematics(q=q, g=g, J=J, xi_gauss=xi_g)
 
