@@ -150,6 +150,11 @@ def test_closed_form_sdf_hessians_match_finite_differences(kind):
     # Away from the medial axis and edges (where the Hessian jumps), they agree closely.
     err = np.abs(H - fd).max(axis=(1, 2)) / (1.0 + np.abs(fd).max(axis=(1, 2)))
     assert np.median(err) < 1e-6 and np.mean(err < 1e-4) > 0.95
+    # One point at a time (fast paths for a batch all in one region) gives the same.
+    for i in range(60):
+        di, ni, Hi = obj.sdf_hessian(p[i:i + 1])
+        assert np.allclose(di, d[i], atol=1e-15) and np.allclose(ni, n[i], atol=1e-12)
+        assert np.allclose(Hi, H[i], rtol=1e-9, atol=1e-9)
 
 
 def _qp_by_enumeration(H, r, A, lo):

@@ -144,11 +144,31 @@ class ContactModel:
                 np.einsum('pk,pkj->pj', ddw, C) / (h * h)[:, None])
 
     def _grid(self, rod):
-        """Return the sample arc lengths (nodes and Hermite points) and their tube radii."""
+        """
+        Return the sample arc lengths, their tube radii and the sampling matrices.
+
+        Samples are the nodes and the Hermite points between. Positions and slopes there
+        are linear in the node positions, tangents and curvatures stacked as (3N, 3):
+        ``Pa = MP @ [P; T; A]``, ``Ta = MT @ [P; T; A]`` (one product each).
+        """
         if self._grid_cache is None or self._grid_cache[0] is not rod:
             Xs = rod.node_X
-            Xa = np.append((Xs[:-1, None] + np.diff(Xs)[:, None] * _S_SUB).ravel(), Xs[-1])
-            self._grid_cache = (rod, Xa, rod.radii[rod.locate(Xa)[0]])
+            h = np.diff(Xs)
+            Xa = np.append((Xs[:-1, None] + h[:, None] * _S_SUB).ravel(), Xs[-1])
+            N, m = len(Xs), len(h)
+            MP = np.zeros((m * _SUB + 1, 3 * N))
+            MT = np.zeros((m * _SUB + 1, 3 * N))
+            for i in range(m):
+                r = slice(i * _SUB, (i + 1) * _SUB)
+                # Control values p0, h p0', h^2 p0'', h^2 p1'', h p1', p1 -> columns.
+                for k, (col, scale) in enumerate([(i, 1.0), (N + i, h[i]), (2 * N + i, h[i] ** 2),
+                                                  (2 * N + i + 1, h[i] ** 2),
+                                                  (N + i + 1, h[i]), (i + 1, 1.0)]):
+                    MP[r, col] += _W_SUB[:, k] * scale
+                    MT[r, col] += _DW_SUB[:, k] * scale / h[i]
+            MP[-1, N - 1] = 1.0
+            MT[-1, 2 * N - 1] = 1.0
+            self._grid_cache = (rod, Xa, rod.radii[rod.locate(Xa)[0]], MP, MT)
         return self._grid_cache[1:]
 
     def find(self, rod, kin):
@@ -165,16 +185,11 @@ class ContactModel:
         R = kin.g[:, :3, :3]
         T = np.einsum('kij,kj->ki', R, xi[:, 3:])
         A = np.einsum('kij,kj->ki', R, cross(xi[:, :3], xi[:, 3:]))
-        h = np.diff(Xs)
-        hh = h[:, None]
-        # Control values p0, h p0', h^2 p0'', h^2 p1'', h p1', p1 of each interval (m, 6, 3).
-        C = np.stack([P[:-1], T[:-1] * hh, A[:-1] * hh * hh, A[1:] * hh * hh, T[1:] * hh,
-                      P[1:]], axis=1)
         # Nodes and _SUB - 1 Hermite points inside each interval (fixed weights).
-        Xa, rad = self._grid(rod)
-        Pa = np.vstack([np.einsum('sk,mkj->msj', _W_SUB, C).reshape(-1, 3), P[-1:]])
-        Ta = np.vstack([(np.einsum('sk,mkj->msj', _DW_SUB, C) / h[:, None, None]).reshape(-1, 3),
-                        T[-1:]])
+        Xa, rad, MP, MT = self._grid(rod)
+        PTA = np.concatenate([P, T, A])
+        Pa, Ta = MP @ PTA, MT @ PTA
+        h = C = None
         out = []
         for oi, obj in enumerate(self.obstacles):
             d, nrm = obj.sdf(Pa)
@@ -186,6 +201,12 @@ class ContactModel:
             is_max = up[:-1] & ~up[1:] & near
             k = np.nonzero(is_min | is_max)[0]
             if len(k):
+                if C is None:
+                    # Control values p0, h p0', h^2 p0'', h^2 p1'', h p1', p1 (m, 6, 3).
+                    h = np.diff(Xs)
+                    hh = h[:, None]
+                    C = np.stack([P[:-1], T[:-1] * hh, A[:-1] * hh * hh, A[1:] * hh * hh,
+                                  T[1:] * hh, P[1:]], axis=1)
                 sign = np.where(is_min[k], 1.0, -1.0)
                 x = self._refine(obj, (Xs, h, C), Xa, slope, k, sign)
                 out += [(xx, oi, sg, a, b) for xx, sg, a, b in zip(x, sign, Xa[k], Xa[k + 1])]

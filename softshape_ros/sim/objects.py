@@ -57,7 +57,7 @@ class Obstacle:
 
 
 def _normalise(v):
-    return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-300)
+    return v / np.maximum(np.sqrt(np.einsum('...i,...i->...', v, v))[..., None], 1e-300)
 
 
 def _outer(a, b):
@@ -150,6 +150,15 @@ class Cylinder(Obstacle):
     def _sdf_hessian(self, p):
         # Rim (outside both): distance to the rim circle; side (outside radially, or
         # inside nearer the side): t t^T / rho; caps: flat.
+        rho = np.hypot(p[:, 0], p[:, 1])
+        if np.all((rho > self.r) & (np.abs(p[:, 2]) < self.hh)):
+            # All beside the curved side (the usual contact): the distance to its circle.
+            u = p[:, :2] / rho[:, None]
+            n = np.zeros_like(p)
+            n[:, :2] = u
+            t = np.zeros_like(p)
+            t[:, 0], t[:, 1] = -u[:, 1], u[:, 0]
+            return rho - self.r, n, _outer(t, t) / rho[:, None, None]
         d, n = self._sdf(p)
         rho = np.maximum(np.hypot(p[:, 0], p[:, 1]), 1e-12)
         dr, dz = rho - self.r, np.abs(p[:, 2]) - self.hh
