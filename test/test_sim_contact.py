@@ -99,6 +99,30 @@ def test_random_actuations_converge_near_objects(kind):
     assert touched >= 1
 
 
+def test_skipping_the_free_solve_when_predicted_deep_gives_the_same_equilibrium(monkeypatch):
+    # A predicted free shape deep in the object goes straight to the contact solve: the
+    # equilibria must be those of the path through the free equilibrium.
+    import softshape_ros.sim.rig as rig_module
+    limits = np.array(CFG.max_pressures_pa)
+
+    def run(depth):
+        monkeypatch.setattr(rig_module, 'PREDICTED_DEPTH_M', depth)
+        rig = SimRig(CFG)
+        rig.set_scene(placed('cylinder'))
+        free_solves = []
+        solve = rig.statics.solve
+        rig.statics.solve = lambda *a, **kw: (free_solves.append(kw.get('contact') is None)
+                                              or True) and solve(*a, **kw)
+        rng = np.random.default_rng(5)
+        shapes = [rig.solve(rng.uniform(0, 1, 6) * limits).backbone_m for _ in range(30)]
+        return shapes, sum(free_solves)
+
+    skipped, n_skip = run(1e-3)
+    full, n_full = run(np.inf)
+    assert n_skip < n_full - 3          # the shortcut was taken
+    assert max(np.abs(a - b).max() for a, b in zip(skipped, full)) < 1e-9
+
+
 def test_tube_lying_along_the_parallel_cylinder_converges():
     # Benchmark actuation 59 of 'cylinder near' (bench_sim): the robot lies along the
     # cylinder, its gap profile is flat and grows minimum-maximum pairs on the way. Counting

@@ -24,6 +24,7 @@ from softshape_ros.sim.rod import Rod, RodSpec
 from softshape_ros.sim.statics import Actuator, SolverError, Statics
 
 SPHERE_SPACING_M = 0.0015
+PREDICTED_DEPTH_M = 1e-3    # skip the free solve when its prediction is this deep inside
 
 
 @dataclass
@@ -120,6 +121,14 @@ class SimRig:
                 q0 = q0 + np.linalg.solve(last.tangent, dQ)
             except np.linalg.LinAlgError:
                 pass
+        if (self.contact is not None and q0 is not None
+                and self._node_gap(q0) < -PREDICTED_DEPTH_M):
+            # The predicted free shape is deep in the object: the free equilibrium would
+            # only serve as the end of the touching-start path, and the prediction does
+            # that as well (the contact solve ends where it ends either way).
+            q, asm, it = self._solve_contact(p, self._touching_start(q0))
+            self._q = q
+            return self._state(q, p, asm, it)
         q, asm, it = self.statics.solve(p, q0=q0)
         self._free = (q, asm, p)
         if self.contact is not None:
