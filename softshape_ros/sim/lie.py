@@ -47,9 +47,7 @@ def skew(v: np.ndarray) -> np.ndarray:
 def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Return a x b over the last axis (broadcasting; faster than np.cross for small arrays)."""
     a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
-    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
-    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
-    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+    return np.einsum('...ij,...j->...i', skew(a), b)
 
 
 def ad(x: np.ndarray) -> np.ndarray:
@@ -76,28 +74,31 @@ def _coefficients(th2, tangent: bool):
 
     Closed forms; the series below ``_SMALL`` are evaluated only when such angles occur.
     """
-    th = np.sqrt(th2)
-    small = th < _SMALL
-    any_small = bool(small.any())
-    t = np.where(small, 1.0, th) if any_small else th
-    s, c = np.sin(t), np.cos(t)
-    t2 = t * t
-    t3 = t2 * t
-    out = [s / t, (1 - c) / t2, (t - s) / t3]
-    if tangent:
-        ts, tc = t * s, t * c
-        out += [-(4 - 4 * c - ts) / (2 * t2), (4 * t - 5 * s + tc) / (2 * t3),
-                -(2 - 2 * c - ts) / (2 * t2 * t2), (2 * t - 3 * s + tc) / (2 * t3 * t2)]
-    if any_small:
-        th4 = th2 * th2
-        series = [1 - th2 / 6 + th4 / 120, 0.5 - th2 / 24 + th4 / 720,
-                  1 / 6 - th2 / 120 + th4 / 5040]
+    small = th2 < _SMALL * _SMALL
+    all_small = bool(small.all())
+    any_small = all_small or bool(small.any())
+    if not all_small:
+        t = np.sqrt(np.where(small, 1.0, th2) if any_small else th2)
+        s, c = np.sin(t), np.cos(t)
+        t2 = t * t
+        t3 = t2 * t
+        out = [s / t, (1 - c) / t2, (t - s) / t3]
         if tangent:
-            series += [-(0.5 - th4 / 720), 1 / 6 - th4 / 5040,
-                       -(1 / 24 - th2 / 360 + th4 / 13440),
-                       1 / 120 - th2 / 2520 + th4 / 120960]
-        out = [np.where(small, a, b) for a, b in zip(series, out)]
-    return out
+            ts, tc = t * s, t * c
+            out += [-(4 - 4 * c - ts) / (2 * t2), (4 * t - 5 * s + tc) / (2 * t3),
+                    -(2 - 2 * c - ts) / (2 * t2 * t2), (2 * t - 3 * s + tc) / (2 * t3 * t2)]
+        if not any_small:
+            return out
+    th4 = th2 * th2
+    series = [1 - th2 / 6 + th4 / 120, 0.5 - th2 / 24 + th4 / 720,
+              1 / 6 - th2 / 120 + th4 / 5040]
+    if tangent:
+        series += [-(0.5 - th4 / 720), 1 / 6 - th4 / 5040,
+                   -(1 / 24 - th2 / 360 + th4 / 13440),
+                   1 / 120 - th2 / 2520 + th4 / 120960]
+    if all_small:
+        return series
+    return [np.where(small, a, b) for a, b in zip(series, out)]
 
 
 def _exp(x, coef):

@@ -209,7 +209,7 @@ class SimRig:
                 if side == -1:
                     ga *= 0.5
                 side = -1
-            if 0.0 <= gt < 2e-5 or b - a < 1e-6:
+            if 0.0 <= gt < 1e-4 or b - a < 1e-6:
                 break
         return q_prev + a * (q_free - q_prev)
 
