@@ -126,7 +126,7 @@ class ContactModel:
             gap = d - rad
             k = np.nonzero(gap > 0)[0]
             if len(k):
-                rows.append(np.einsum('ki,kij,kjn->kn', n[k], kin.g[k, :3, :3], kin.J[k, 3:, :]))
+                rows.append((n[k, None, :] @ kin.g[k, :3, :3] @ kin.J[k, 3:, :])[:, 0, :])
                 lo.append(-depth - gap[k])
         if not rows:
             return np.zeros((0, rod.n)), np.zeros(0)
@@ -232,7 +232,8 @@ class ContactModel:
             p, dp, ddp = self._hermite(*args, x)
             _, n, H = obj.sdf_hessian(p)
             d1 = np.einsum('pi,pi->p', n, dp)
-            d2 = np.einsum('pi,pij,pj->p', dp, H, dp) + np.einsum('pi,pi->p', n, ddp)
+            d2 = (np.einsum('pi,pi->p', dp, np.einsum('pij,pj->pi', H, dp))
+                  + np.einsum('pi,pi->p', n, ddp))
             right = sign * d1 < 0
             lo = np.where(right, x, lo)
             hi = np.where(right, hi, x)
@@ -375,7 +376,7 @@ class ContactModel:
             dt = R[s] @ (-skew(xi[s, 3:]) @ J[s, :3, :] + phi[s, 3:, :])
             gxq = np.einsum('pi,pin->pn', Htv[s], D) \
                 + np.einsum('pi,pin->pn', nn[s], dt)
-            extra_k = np.einsum('p,pn,pm->nm', sign[s] * lam[s] / gxx[s], gxq, gxq)
+            extra_k = (gxq * (sign[s] * lam[s] / gxx[s])[:, None]).T @ gxq
         # Potential of the stiffening part taken unsmoothed (it only serves as a merit).
         e = penalty_energy(gap, self.k, self.delta) \
             + self.k * np.maximum(0.0, -gap) ** 3 / (3 * STIFFENING_DEPTH_M)
@@ -385,5 +386,5 @@ class ContactModel:
                                             nn[j].copy(), f[j].copy(), float(gap[j]),
                                             int(oi[j]), bool(sign[j] < 0)))
         info['max_penetration_m'] = max(0.0, float(-gap.min()))
-        info['gap_grad'] = np.einsum('pi,pij,pjn->pn', nn, R, J[:, 3:, :])
+        info['gap_grad'] = (nn[:, None, :] @ R @ J[:, 3:, :])[:, 0, :]
         return LoadTerm(X, g, J, f, np.zeros((len(X), 3)), dfdp, extra_k), info

@@ -164,6 +164,8 @@ class Statics:
         self.td_on = np.array([[rod.gauss_seg[k] <= self.actuators[i].segment for i in td]
                                for k in range(len(rod.gauss_seg))], dtype=float).reshape(
                                    len(rod.gauss_seg), len(td))
+        # sum_k w_k Phi_k^T X_k as one product: Phi of the Gauss nodes, weighted, (n, 6K).
+        self._phiw = (rod.phi_g * rod.gauss_w[:, None, None]).reshape(-1, rod.n).T.copy()
         # Gravity: lumped weights at the Gauss nodes (world force).
         self.grav_f = (rod.spec.density * rod.area[rod.gauss_seg] * rod.gauss_w)[:, None] \
             * rod.gravity[None, :]
@@ -181,7 +183,7 @@ class Statics:
         t = v / nv[..., None]
         Tk = self.td_on * T[None, :]                        # (K, t)
         lam = -Tk[..., None] * np.concatenate([cross(d[None], t), t], axis=-1)
-        Q = np.einsum('k,kin,ki->n', rod.gauss_w, rod.phi_g, lam.sum(axis=1))
+        Q = self._phiw @ lam.sum(axis=1).ravel()
         # d lam / d xi = -T [d^; I] (I - t t^T) / |v| [-d^, I]
         dh = skew(d)                                        # (t, 3, 3)
         P = (np.eye(3) - t[..., :, None] * t[..., None, :]) / nv[..., None, None]
@@ -190,7 +192,7 @@ class Statics:
         right = np.concatenate([-dh[None].repeat(len(xi), 0), np.broadcast_to(
             np.eye(3), P.shape)], axis=-1)                  # (K, t, 3, 6)
         dlam = -(Tk[..., None, None] * (top @ P @ right)).sum(axis=1)   # (K, 6, 6)
-        dQ = np.einsum('k,kin,kij,kjm->nm', rod.gauss_w, rod.phi_g, dlam, rod.phi_g)
+        dQ = self._phiw @ (dlam @ rod.phi_g).reshape(-1, rod.n)
         energy = float(np.einsum('k,kt,kt->', rod.gauss_w, Tk, nv))   # T x tendon length
         return Q, dQ, energy
 
@@ -216,11 +218,12 @@ class Statics:
             Rt = np.swapaxes(term.g[:, :3, :3], 1, 2)
             W = np.concatenate([np.einsum('pij,pj->pi', Rt, term.m),
                                 np.einsum('pij,pj->pi', Rt, term.f)], axis=1)
-            Q = np.einsum('pin,pi->n', term.J, W)
+            Q = term.J.reshape(-1, term.J.shape[-1]).T @ W.ravel()
             R -= Q
         if term.dfdp is not None:
             D = term.g[:, :3, :3] @ term.J[:, 3:, :]          # (P, 3, n) world dp/dq
-            Kt -= np.einsum('pin,pij,pjm->nm', D, term.dfdp, D)
+            n = D.shape[-1]
+            Kt -= D.reshape(-1, n).T @ (term.dfdp @ D).reshape(-1, n)
         if term.stiffness is not None:
             Kt += term.stiffness
         return float(np.abs(Q).max(initial=0.0))
@@ -290,9 +293,11 @@ class Statics:
                     Fq = np.repeat(t.f[i], G, axis=0)
                     Mq = np.repeat(fm[i], G, axis=0)
                     dl = self._dlam(gq, Jq, Fq, Mq, np.repeat(dfm[i], G, axis=0))
-                    extra += np.einsum('k,kin,kim->nm', wq, phq, dl)
+                    # Sums over quadrature points as one matrix product (sum_k w_k Phi_k^T X_k).
+                    phw = (phq * wq[:, None, None]).reshape(-1, n).T
+                    extra += phw @ dl.reshape(-1, n)
                     if in_q:
-                        Qp += np.einsum('k,kin,ki->n', wq, phq, self._lam(gq, Fq, Mq))
+                        Qp += phw @ self._lam(gq, Fq, Mq).ravel()
                 if in_q:
                     np.add.at(Fp, b, t.f)
                     np.add.at(Mp, b, fm)
@@ -307,10 +312,10 @@ class Statics:
         dM = np.cumsum(dMb[::-1], axis=0)[::-1][1:]
         gk = kin.g[rod.gauss_node]
         dl = self._dlam(gk, kin.J[rod.gauss_node], F, M, dM)
-        Kg = np.einsum('k,kin,kim->nm', rod.gauss_w, rod.phi_g, dl) + extra
+        Kg = self._phiw @ dl.reshape(-1, n) + extra
         lam = self._lam(gk, np.cumsum(Fp[::-1], axis=0)[::-1][1:],
                         np.cumsum(Mp[::-1], axis=0)[::-1][1:])
-        Qp += np.einsum('k,kin,ki->n', rod.gauss_w, rod.phi_g, lam)
+        Qp += self._phiw @ lam.ravel()
         return Qp, Kg
 
     def assemble(self, q, u, loads, factor: float = 1.0, contact=None) -> Assembly:
@@ -464,7 +469,7 @@ class Statics:
                 dq *= max_dq / big
             if np.isfinite(radius):
                 kin = asm.kin
-                move = np.einsum('kij,kjn,n->ki', kin.g[:, :3, :3], kin.J[:, 3:, :], dq)
+                move = (kin.g[:, :3, :3] @ kin.J[:, 3:, :]) @ dq
                 mv = float(np.sqrt((move ** 2).sum(axis=1)).max())
                 if mv > radius:
                     dq *= radius / mv
