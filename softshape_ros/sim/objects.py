@@ -56,8 +56,12 @@ class Obstacle:
         return np.inf
 
 
+def _norm(v):
+    return np.sqrt(np.einsum('...i,...i->...', v, v))
+
+
 def _normalise(v):
-    return v / np.maximum(np.sqrt(np.einsum('...i,...i->...', v, v))[..., None], 1e-300)
+    return v / np.maximum(_norm(v)[..., None], 1e-300)
 
 
 def _outer(a, b):
@@ -286,30 +290,41 @@ class Prism(Obstacle):
         self._fe = np.array([[f[1], f[2]] for f in faces])            # (6, 2, 3)
         G = np.einsum('fai,fbi->fab', self._fe, self._fe)
         self._fginv = np.linalg.inv(G)                                # (6, 2, 2)
+        # Face coordinates of a point: ab = (E E^T)^-1 E (p - a), as one (12, 3) matrix.
+        self._fproj = np.einsum('fab,fbi->fai', self._fginv, self._fe).reshape(12, 3)
+        self._eab2 = np.einsum('ei,ei->e', self._eab, self._eab)
+        self._fa_ab = np.einsum('fai,fi->fa', self._fproj.reshape(6, 2, 3), self._fa)
+        self._ea_eab = np.einsum('ei,ei->e', self._ea, self._eab)
+        self._ea2 = np.einsum('ei,ei->e', self._ea, self._ea)
+        fn = np.cross(self._fe[:, 0], self._fe[:, 1])
+        self._fn = fn / np.linalg.norm(fn, axis=1, keepdims=True)       # unit face normals
+        self._fn_a = np.einsum('fi,fi->f', self._fn, self._fa)
 
     def _closest(self, p):
         """Return distance, normal, nearest-feature index (< 12: edge) and edge parameter."""
         # Exact distance: inside, the largest face distance; outside, the nearest point
         # among the face interiors and the 12 edges (C1 outside, so contact is smooth).
+        # Distances come from (P, 12) and (P, 6) products; only the nearest feature's
+        # point is built.
         if not hasattr(self, '_fa'):
             self._features()
         e = p @ self.normals.T - self.offsets
         inside_d = e.max(axis=1)
-        rel = p[:, None, :] - self._ea[None]                           # (P, 12, 3)
-        t = np.clip(np.einsum('pei,ei->pe', rel, self._eab)
-                    / np.einsum('ei,ei->e', self._eab, self._eab), 0.0, 1.0)
-        ce = self._ea[None] + t[..., None] * self._eab[None]
-        de = np.linalg.norm(p[:, None, :] - ce, axis=2)
-        relf = p[:, None, :] - self._fa[None]                          # (P, 6, 3)
-        ab = np.einsum('fab,fbi,pfi->pfa', self._fginv, self._fe, relf)
+        pp = np.einsum('pi,pi->p', p, p)[:, None]
+        dot = p @ self._eab.T - self._ea_eab                             # (p - a) . (b - a)
+        t = np.clip(dot / self._eab2, 0.0, 1.0)
+        rel2 = pp - 2.0 * (p @ self._ea.T) + self._ea2                   # |p - a|^2
+        de = np.sqrt(np.maximum(rel2 - t * (2.0 * dot - t * self._eab2), 0.0))
+        ab = (p @ self._fproj.T).reshape(-1, 6, 2) - self._fa_ab
         ok = ((ab >= 0) & (ab <= 1)).all(axis=2)
-        cf = self._fa[None] + np.einsum('pfa,fai->pfi', ab, self._fe)
-        df = np.where(ok, np.linalg.norm(p[:, None, :] - cf, axis=2), np.inf)
-        allc = np.concatenate([ce, cf], axis=1)
-        alld = np.concatenate([de, df], axis=1)
+        h = p @ self._fn.T - self._fn_a                                 # to each face plane
+        alld = np.concatenate([de, np.where(ok, np.abs(h), np.inf)], axis=1)
         k = np.argmin(alld, axis=1)
         rows = np.arange(len(p))
-        closest = allc[rows, k]
+        ke = np.minimum(k, 11)
+        kf = np.maximum(k - 12, 0)
+        closest = np.where((k < 12)[:, None], self._ea[ke] + t[rows, ke, None] * self._eab[ke],
+                           p - h[rows, kf, None] * self._fn[kf])
         outside = inside_d > 0
         d = np.where(outside, alld[rows, k], inside_d)
         n_out = _normalise(p - closest)
