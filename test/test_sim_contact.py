@@ -99,7 +99,9 @@ def test_random_actuations_converge_near_objects(kind):
     assert touched >= 1
 
 
-def test_skipping_the_free_solve_when_predicted_deep_gives_the_same_equilibrium(monkeypatch):
+@pytest.mark.parametrize('kind', ['cylinder', 'ring', 'prism'])
+def test_skipping_the_free_solve_when_predicted_deep_gives_the_same_equilibrium(
+        kind, monkeypatch):
     # A predicted free shape deep in the object goes straight to the contact solve: the
     # equilibria must be those of the path through the free equilibrium.
     import softshape_ros.sim.rig as rig_module
@@ -108,7 +110,7 @@ def test_skipping_the_free_solve_when_predicted_deep_gives_the_same_equilibrium(
     def run(depth):
         monkeypatch.setattr(rig_module, 'PREDICTED_DEPTH_M', depth)
         rig = SimRig(CFG)
-        rig.set_scene(placed('cylinder'))
+        rig.set_scene(placed(kind))
         free_solves = []
         solve = rig.statics.solve
         rig.statics.solve = lambda *a, **kw: (free_solves.append(kw.get('contact') is None)
@@ -119,7 +121,7 @@ def test_skipping_the_free_solve_when_predicted_deep_gives_the_same_equilibrium(
 
     skipped, n_skip = run(1e-3)
     full, n_full = run(np.inf)
-    assert n_skip < n_full - 3          # the shortcut was taken
+    assert n_skip < n_full              # the shortcut was taken
     assert max(np.abs(a - b).max() for a, b in zip(skipped, full)) < 1e-9
 
 
@@ -177,7 +179,8 @@ def test_closed_form_sdf_hessians_match_finite_differences(kind):
     # One point at a time (fast paths for a batch all in one region) gives the same.
     for i in range(60):
         di, ni, Hi = obj.sdf_hessian(p[i:i + 1])
-        assert np.allclose(di, d[i], atol=1e-15) and np.allclose(ni, n[i], atol=1e-12)
+        assert np.allclose(di, d[i], rtol=0, atol=1e-15)
+        assert np.allclose(ni, n[i], rtol=0, atol=1e-12)
         assert np.allclose(Hi, H[i], rtol=1e-9, atol=1e-9)
 
 

@@ -114,7 +114,7 @@ class ContactModel:
         flat and the Newton model alone would send it millimetres deep.
         """
         pts = kin.g[:, :3, 3]
-        rad = rod.radii[rod.locate(rod.node_X)[0]]
+        rad = self._grid(rod)[4]
         rows, lo = [], []
         if info and info.get('contacts'):
             gap = np.array([c.gap_m for c in info['contacts']])
@@ -145,7 +145,7 @@ class ContactModel:
 
     def _grid(self, rod):
         """
-        Return the sample arc lengths, their tube radii and the sampling matrices.
+        Return the sample arc lengths and tube radii, the sampling matrices, node radii.
 
         Samples are the nodes and the Hermite points between. Positions and slopes there
         are linear in the node positions, tangents and curvatures stacked as (3N, 3):
@@ -168,7 +168,8 @@ class ContactModel:
                     MT[r, col] += _DW_SUB[:, k] * scale / h[i]
             MP[-1, N - 1] = 1.0
             MT[-1, 2 * N - 1] = 1.0
-            self._grid_cache = (rod, Xa, rod.radii[rod.locate(Xa)[0]], MP, MT)
+            self._grid_cache = (rod, Xa, rod.radii[rod.locate(Xa)[0]], MP, MT,
+                                rod.radii[rod.locate(Xs)[0]])
         return self._grid_cache[1:]
 
     def find(self, rod, kin):
@@ -186,7 +187,7 @@ class ContactModel:
         T = np.einsum('kij,kj->ki', R, xi[:, 3:])
         A = np.einsum('kij,kj->ki', R, cross(xi[:, :3], xi[:, 3:]))
         # Nodes and _SUB - 1 Hermite points inside each interval (fixed weights).
-        Xa, rad, MP, MT = self._grid(rod)
+        Xa, rad, MP, MT, _ = self._grid(rod)
         PTA = np.concatenate([P, T, A])
         Pa, Ta = MP @ PTA, MT @ PTA
         h = C = None
@@ -242,7 +243,7 @@ class ContactModel:
             ok = good & (newton >= lo) & (newton <= hi)
             xn = np.where(ok, newton, 0.5 * (lo + hi))
             # A Newton step under 1e-10 m leaves x ~1e-17 m from the root (quadratic).
-            done = ok & (np.abs(xn - x) < 1e-10)
+            done = (ok & (np.abs(xn - x) < 1e-10)) | (hi - lo < 1e-13)
             x = xn
             if done.all():
                 break

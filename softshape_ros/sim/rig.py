@@ -127,6 +127,8 @@ class SimRig:
             # only serve as the end of the touching-start path, and the prediction does
             # that as well (the contact solve ends where it ends either way).
             q, asm, it = self._solve_contact(p, self._touching_start(q0))
+            if not asm.extra.get('contacts'):
+                self._free = (q, asm, p)      # it was free after all: a fresh base
             self._q = q
             return self._state(q, p, asm, it)
         q, asm, it = self.statics.solve(p, q0=q0)
@@ -135,7 +137,8 @@ class SimRig:
             # A node inside an object settles it; otherwise the contact model decides (a
             # contact between nodes, or one within the penalty's reach): with no candidate
             # it adds nothing to asm.
-            info = None if self._node_gap(q) < 0.0 else self.contact(self.rod, asm.kin)[1]
+            inside = self._node_gap(q, asm.kin) < 0.0
+            info = None if inside else self.contact(self.rod, asm.kin)[1]
             if info is None or info['contacts']:
                 q, asm, it2 = self._solve_contact(p, self._touching_start(q))
                 it += it2
@@ -168,10 +171,10 @@ class SimRig:
                 self.contact.k = k_full
         raise error
 
-    def _node_gap(self, q) -> float:
+    def _node_gap(self, q, kin=None) -> float:
         """Return the least gap (m) between the tube at the nodes and the objects."""
-        rod = self.rod
-        pts = rod.forward(q, jac=False).g[:, :3, 3]
+        kin = kin if kin is not None else self.rod.forward(q, jac=False)
+        pts = kin.g[:, :3, 3]
         return min(float((o.sdf(pts)[0] - self._node_radii).min()) for o in self.obstacles)
 
     def _touching_start(self, q_free):

@@ -46,7 +46,8 @@ def _project(dq, L, A, lo, max_active: int = 6):
         viol = A @ dq - lo
         viol[act] = np.inf
         i = int(np.argmin(viol))
-        if viol[i] >= 0.0:
+        # Round-off (~1e-17 m) on a row that duplicates an active one is not a violation.
+        if viol[i] >= -1e-13:
             return dq
         act.append(i)
         while act:
@@ -473,7 +474,6 @@ class Statics:
                 mv = float(np.sqrt((move ** 2).sum(axis=1)).max())
                 if mv > radius:
                     dq *= radius / mv
-                    move *= radius / mv
                     mv = radius
             slope = float(r @ dq)
             w0 = wnorm(asm)
