@@ -121,12 +121,12 @@ class SimRig:
                 q0 = q0 + np.linalg.solve(last.tangent, dQ)
             except np.linalg.LinAlgError:
                 pass
-        if (self.contact is not None and q0 is not None
-                and self._node_gap(q0) < -PREDICTED_DEPTH_M):
+        g0 = self._node_gap(q0) if self.contact is not None and q0 is not None else np.inf
+        if g0 < -PREDICTED_DEPTH_M:
             # The predicted free shape is deep in the object: the free equilibrium would
             # only serve as the end of the touching-start path, and the prediction does
             # that as well (the contact solve ends where it ends either way).
-            q, asm, it = self._solve_contact(p, self._touching_start(q0))
+            q, asm, it = self._solve_contact(p, self._touching_start(q0, g0))
             if not asm.extra.get('contacts'):
                 self._free = (q, asm, p)      # it was free after all: a fresh base
             self._q = q
@@ -137,10 +137,10 @@ class SimRig:
             # A node inside an object settles it; otherwise the contact model decides (a
             # contact between nodes, or one within the penalty's reach): with no candidate
             # it adds nothing to asm.
-            inside = self._node_gap(q, asm.kin) < 0.0
-            info = None if inside else self.contact(self.rod, asm.kin)[1]
+            g_free = self._node_gap(q, asm.kin)
+            info = None if g_free < 0.0 else self.contact(self.rod, asm.kin)[1]
             if info is None or info['contacts']:
-                q, asm, it2 = self._solve_contact(p, self._touching_start(q))
+                q, asm, it2 = self._solve_contact(p, self._touching_start(q, g_free))
                 it += it2
             else:
                 asm.extra = info
@@ -177,7 +177,7 @@ class SimRig:
         pts = kin.g[:, :3, 3]
         return min(float((o.sdf(pts)[0] - self._node_radii).min()) for o in self.obstacles)
 
-    def _touching_start(self, q_free):
+    def _touching_start(self, q_free, gap_free=None):
         """
         Return the shape on the way from the last one to ``q_free`` that just touches.
 
@@ -191,7 +191,7 @@ class SimRig:
             return self._node_gap(q_prev + t * (q_free - q_prev))
 
         a, b = 0.0, 1.0
-        ga, gb = gap(a), gap(b)
+        ga, gb = gap(a), (gap(b) if gap_free is None else gap_free)
         if ga <= 0.0 and self._q is not None:
             # The last shape touches: walk from the rest shape instead.
             q_prev = np.zeros_like(q_free)
