@@ -113,17 +113,13 @@ class ContactModel:
         ``depth`` or double its penetration: where it lifts off its penalty is nearly
         flat and the Newton model alone would send it millimetres deep.
         """
-        pts = kin.g[:, :3, 3]
-        rad = self._grid(rod)[4]
         rows, lo = [], []
         if info and info.get('contacts'):
             gap = np.array([c.gap_m for c in info['contacts']])
             keep = ~np.array([c.ridge for c in info['contacts']])
             rows.append(info['gap_grad'][keep])
             lo.append(np.minimum(2.0 * gap[keep], -depth) - gap[keep])
-        for obj in self.obstacles:
-            d, n = obj.sdf(pts)
-            gap = d - rad
+        for gap, n in self.node_gaps(rod, kin):
             k = np.nonzero(gap > 0)[0]
             if len(k):
                 rows.append((n[k, None, :] @ kin.g[k, :3, :3] @ kin.J[k, 3:, :])[:, 0, :])
@@ -131,6 +127,16 @@ class ContactModel:
         if not rows:
             return np.zeros((0, rod.n)), np.zeros(0)
         return np.vstack(rows), np.concatenate(lo)
+
+    def node_gaps(self, rod, kin):
+        """Return (gap (N,), normal (N, 3)) of the tube at the nodes, for each object."""
+        pts = kin.g[:, :3, 3]
+        rad = self._grid(rod)[4]
+        out = []
+        for obj in self.obstacles:
+            d, n = obj.sdf(pts)
+            out.append((d - rad, n))
+        return out
 
     @staticmethod
     def _hermite(C, X0, h, x):
@@ -285,10 +291,7 @@ class ContactModel:
         state = self._at(rod, kin, X, oi)
         g, J, phi, xi, seg, d, nn, H = state
         R = g[:, :3, :3]
-        tv = np.einsum('pij,pj->pi', R, xi[:, 3:])
-        pp = np.einsum('pij,pj->pi', R, cross(xi[:, :3], xi[:, 3:]))
-        Htv = np.einsum('pij,pj->pi', H, tv)
-        gxx = np.einsum('pi,pi->p', tv, Htv) + np.einsum('pi,pi->p', nn, pp)
+        tv, pp, Htv, gxx = self._along(R, xi, nn, H)
         dX = self._newton_dX(X, nn, tv, gxx, sign, lo, hi, rod.length)
         far = np.abs(dX) > _MOVE_M
         if far.any():
@@ -298,12 +301,8 @@ class ContactModel:
                 sub = self._at(rod, kin, X[rows], oi[rows])
                 for a, v in zip(state, sub):
                     a[rows] = v
-                Rs = g[rows, :3, :3]
-                tv[rows] = np.einsum('pij,pj->pi', Rs, xi[rows, 3:])
-                pp[rows] = np.einsum('pij,pj->pi', Rs, cross(xi[rows, :3], xi[rows, 3:]))
-                Htv[rows] = np.einsum('pij,pj->pi', H[rows], tv[rows])
-                gxx[rows] = (np.einsum('pi,pi->p', tv[rows], Htv[rows])
-                             + np.einsum('pi,pi->p', nn[rows], pp[rows]))
+                tv[rows], pp[rows], Htv[rows], gxx[rows] = self._along(
+                    g[rows, :3, :3], xi[rows], nn[rows], H[rows])
                 dX[rows] = self._newton_dX(X[rows], nn[rows], tv[rows], gxx[rows],
                                            sign[rows], lo[rows], hi[rows], rod.length)
                 if sweep == _POLISH_STEPS - 1:
@@ -322,6 +321,14 @@ class ContactModel:
             nn = nn + np.einsum('pij,pj->pi', H, dp)
             X = X + dX
         return X, (g, J, phi, xi, seg, d, nn, H, tv, Htv, gxx)
+
+    @staticmethod
+    def _along(R, xi, nn, H):
+        """Return p', p'' (strain-based), H p' and the gap's d2/dX2 at contact frames R."""
+        tv = np.einsum('pij,pj->pi', R, xi[:, 3:])
+        pp = np.einsum('pij,pj->pi', R, cross(xi[:, :3], xi[:, 3:]))
+        Htv = np.einsum('pij,pj->pi', H, tv)
+        return tv, pp, Htv, np.einsum('pi,pi->p', tv, Htv) + np.einsum('pi,pi->p', nn, pp)
 
     @staticmethod
     def _newton_dX(X, nn, tv, gxx, sign, lo, hi, length):

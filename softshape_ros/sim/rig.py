@@ -89,7 +89,6 @@ class SimRig:
         self._free = None           # (q, assembly, pressures) of the last free equilibrium
         sample_n = int(np.ceil(self.rod.length / SPHERE_SPACING_M)) + 1
         self.sample_s = np.linspace(0.0, self.rod.length, sample_n)
-        self._node_radii = self.rod.radii[self.rod.locate(self.rod.node_X)[0]]
 
     def set_scene(self, scene: Scene | None) -> None:
         """Place the scene's object (None or object 'none': the robot alone)."""
@@ -174,8 +173,7 @@ class SimRig:
     def _node_gap(self, q, kin=None) -> float:
         """Return the least gap (m) between the tube at the nodes and the objects."""
         kin = kin if kin is not None else self.rod.forward(q, jac=False)
-        pts = kin.g[:, :3, 3]
-        return min(float((o.sdf(pts)[0] - self._node_radii).min()) for o in self.obstacles)
+        return min(float(gap.min()) for gap, _ in self.contact.node_gaps(self.rod, kin))
 
     def _touching_start(self, q_free, gap_free=None):
         """
