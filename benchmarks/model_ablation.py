@@ -3,7 +3,7 @@ Design study behind ``ours``: train variants for a fixed number of steps, score 
 
 Not part of ``make bench`` (minutes per variant). Each variant is JSON: ``{"arch": "ours",
 ...OursNet params}``, ``{"arch": "paper"}``, or ``{"arch": "variant", ...}`` for the
-alternatives that lost (kept so the README's design study can be re-run); an ``"lr"`` key
+alternatives that lost (kept so docs/model.md's design study can be re-run); an ``"lr"`` key
 sets its learning rate (default: the network's own, ``ours``' for variants)::
 
     python -m benchmarks.model_ablation --dataset D --steps 300

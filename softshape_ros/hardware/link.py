@@ -1,7 +1,7 @@
 """
 The host end of the Due serial link: handshake, commands with acknowledgement, reconnect.
 
-Safety rules this class keeps (DESIGN.md "Safety"): it sends only what
+Safety rules this class keeps (docs/design.md "Safety"): it sends only what
 :func:`~softshape_ros.hardware.pressure.check_command` accepted, clamped to the lower of the
 configured and the firmware's limits; every (re)connection ends its handshake with a vent,
 so nothing from before a lost link is ever applied again until a fresh command arrives; a

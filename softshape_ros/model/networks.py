@@ -73,7 +73,7 @@ class OursNet(nn.Module):
     the network only has to draw what moves. FiLM is a per-channel modulation, the same at
     every pixel, so two coordinate planes (CoordConv) join the input: where the tip goes
     depends on the actuation, and the network needs to know where it is drawing
-    (design study in the README: 25.0 -> 22.0 test RMSE at the same 300 steps).
+    (design study in docs/model.md: 25.0 -> 22.0 test RMSE at the same 300 steps).
     All FiLM parameters come from one linear projection of the actuation embedding.
     """
 

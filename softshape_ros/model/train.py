@@ -31,7 +31,7 @@ from softshape_ros.model.networks import build_network
 
 
 # Adam learning rates, each network's best of three on the simulated 1000-sample stereo set
-# at 300 steps (README, "Design study"), so the comparison is fair.
+# at 300 steps (docs/model.md, "Design study"), so the comparison is fair.
 DEFAULT_LR = {'paper': 1e-3, 'ours': 4e-3}
 
 

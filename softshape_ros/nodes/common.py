@@ -26,7 +26,7 @@ from sensor_msgs.msg import Image
 from softshape_ros.config import RigConfig, load_rig_config
 from softshape_ros.vision.image_msg import ENCODINGS, decode_image, stamp_ns
 
-#: The sensor-data profile (best effort, keep last 5), DESIGN.md's choice for images.
+#: The sensor-data profile (best effort, keep last 5), docs/design.md's choice for images.
 SENSOR_QOS = qos_profile_sensor_data
 #: Camera and predicted images, CameraInfo: keep-last 5 like SENSOR_QOS, but offered reliable.
 #: Best-effort subscribers (viewers, SENSOR_QOS) still match; reliable ones (the recorder
