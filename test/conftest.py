@@ -12,28 +12,53 @@ os.environ.setdefault('PYTHONUNBUFFERED', '1')
 
 import pytest  # noqa: E402
 
+from softshape_ros.nodes.transport import configure_transport  # noqa: E402
 
-#: Waits return as soon as their condition holds; on a loaded CI machine they may take longer
-#: than on a quiet one, so every timeout is stretched by this factor (failures take longer).
+# The transport every node uses (the package's Fast DDS profile, unless the environment names
+# another): set before rclpy starts, inherited by the nodes a test starts as processes.
+TRANSPORT = configure_transport()
+
+#: Deadlines for failure, not waits: a wait returns as soon as its condition holds. On a loaded
+#: CI machine work takes longer than on a quiet one, so every deadline is stretched by this.
 TIMEOUT_SCALE = float(os.environ.get('SOFTSHAPE_TEST_TIMEOUT_SCALE', '3'))
 
 
-def wait_for(predicate, timeout: float = 10.0, period: float = 0.01, what: str = 'condition'):
-    """Poll ``predicate`` until true; fail the test with ``what`` on timeout."""
-    timeout *= TIMEOUT_SCALE
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(period)
-    pytest.fail(f'timed out after {timeout:.1f} s waiting for {what}')
+def _import_and_freeze() -> None:
+    """
+    Import what the ROS tests use, then take it out of the garbage collector's sight.
+
+    This process hosts many nodes, torch and a virtual Due thread at once; a full collection
+    over its ~400k import-time objects held the GIL for seconds on a busy machine and froze
+    every thread (the stalls seen as "no state from the Due for 3 s"; docs/transport.md).
+    The nodes do the same once built (``nodes.common.freeze_heap``).
+    """
+    import importlib
+    import pkgutil
+
+    import matplotlib.pyplot  # noqa: F401
+    import torch  # noqa: F401
+
+    import softshape_ros.nodes
+    for m in pkgutil.iter_modules(softshape_ros.nodes.__path__):
+        importlib.import_module(f'softshape_ros.nodes.{m.name}')
+    import softshape_ros.model.train  # noqa: F401
+    from softshape_ros.data.bag_writer import jazzy_typestore
+    from softshape_ros.nodes.common import freeze_heap
+    jazzy_typestore()
+    freeze_heap()
+
+
+#: Unfrozen objects over which a ROS test first freezes the heap again (what earlier tests
+#: imported or built for the session, e.g. a trained model; a collection over ~20k objects
+#: takes milliseconds).
+REFREEZE_OBJECTS = 20_000
 
 
 @pytest.fixture(scope='session')
 def rclpy_session():
     """One rclpy context for the whole run (init once, shut down at the end)."""
     import rclpy
+    _import_and_freeze()
     rclpy.init()
     yield rclpy
     rclpy.try_shutdown()
@@ -42,19 +67,30 @@ def rclpy_session():
 @pytest.fixture
 def ros(rclpy_session):
     """Spin a multithreaded executor in a thread; add nodes with ``ros.add(node)``."""
+    import gc
+
     from rclpy.executors import MultiThreadedExecutor
+
+    from softshape_ros.nodes.common import freeze_heap
+    if len(gc.get_objects()) > REFREEZE_OBJECTS:
+        freeze_heap()
 
     class Ros:
         def __init__(self):
             self.executor = MultiThreadedExecutor(num_threads=4)
             self.nodes = []
+            # Notified after every executor iteration: waits re-check their condition when
+            # something may have changed (a callback ran, or the 50 ms spin slice ended).
+            self.changed = threading.Condition()
+            self._stop = threading.Event()
             self.thread = threading.Thread(target=self._spin, daemon=True)
-            self._stop = False
             self.thread.start()
 
         def _spin(self):
-            while not self._stop:
+            while not self._stop.is_set():
                 self.executor.spin_once(timeout_sec=0.05)
+                with self.changed:
+                    self.changed.notify_all()
 
         def add(self, node):
             self.nodes.append(node)
@@ -64,18 +100,30 @@ def ros(rclpy_session):
         def node(self, name):
             return self.add(rclpy_session.create_node(name))
 
-        wait_for = staticmethod(wait_for)
+        def wait_for(self, predicate, timeout: float = 10.0, what: str = 'condition'):
+            """Return ``predicate()`` once true; fail the test with ``what`` past the deadline."""
+            deadline = time.monotonic() + timeout * TIMEOUT_SCALE
+            with self.changed:
+                while True:
+                    value = predicate()
+                    if value:
+                        return value
+                    left = deadline - time.monotonic()
+                    if left <= 0:
+                        pytest.fail(f'timed out after {timeout * TIMEOUT_SCALE:.1f} s '
+                                    f'waiting for {what}')
+                    self.changed.wait(min(left, 0.1))
 
         def close(self):
-            self._stop = True
+            self._stop.set()
             self.thread.join(timeout=5)
+            # Callbacks still running in the executor's pool finish before their node goes.
+            self.executor.shutdown(timeout_sec=5)
             for n in reversed(self.nodes):
                 hook = getattr(n, 'on_shutdown', None)
                 if hook:
                     hook()
-                self.executor.remove_node(n)
                 n.destroy_node()
-            self.executor.shutdown()
 
     r = Ros()
     yield r

@@ -7,6 +7,7 @@ the adapters' adapters, so that each node file reads like ros2/demos' talker/lis
 
 from __future__ import annotations
 
+import gc
 import signal
 import sys
 from typing import Callable
@@ -24,6 +25,7 @@ from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityP
 from sensor_msgs.msg import Image
 
 from softshape_ros.config import RigConfig, load_rig_config
+from softshape_ros.nodes.transport import TransportProfileError, configure_transport
 from softshape_ros.vision.image_msg import ENCODINGS, decode_image, stamp_ns
 
 #: The sensor-data profile (best effort, keep last 5), docs/design.md's choice for images.
@@ -104,9 +106,28 @@ def publish_diagnostics(node: Node, publisher, statuses: list[DiagnosticStatus])
     publisher.publish(arr)
 
 
+def freeze_heap() -> None:
+    """
+    Move every object alive now out of the garbage collector's sight (``gc.freeze``).
+
+    A full (generation-2) collection walks every tracked object while holding the GIL. After
+    importing torch, rosbags' type store or matplotlib that is 200k-400k objects: 0.1-1 s of
+    CPU, seconds of wall time on a busy machine, during which no thread of the process runs
+    (timers, callbacks, the serial link's heartbeat). Found with ``py-spy dump --native``
+    during such a stall (docs/transport.md). Called once a node is built, later collections
+    only walk what the node allocates while it runs.
+    """
+    gc.collect()
+    gc.freeze()
+
+
 def run_node(factory: Callable[[], Node], args=None, multithreaded: bool = False) -> int:
     """
     Init rclpy, spin the node until SIGINT/SIGTERM, clean up, return the exit code.
+
+    The DDS transport is configured first (``configure_transport``: the package's Fast DDS
+    profile unless the user chose one), because Fast DDS reads its profiles once, when the
+    process's first participant is created.
 
     Nodes may define ``on_shutdown()`` (e.g. vent the pressures); it runs after spinning
     stops and before the node is destroyed, whatever stopped it, with the ROS context still
@@ -114,13 +135,22 @@ def run_node(factory: Callable[[], Node], args=None, multithreaded: bool = False
     first) are not installed: SIGINT/SIGTERM raise KeyboardInterrupt, and the executor spins
     in 0.1 s slices so the interrupt is seen promptly.
     """
+    try:
+        transport = configure_transport()
+    except TransportProfileError as exc:
+        print(f'[softshape] fatal: {exc}', file=sys.stderr)
+        return 2
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     node = None
     code = 0
     try:
         node = factory()
+        node.get_logger().info(
+            f'DDS transport: {transport.reason}'
+            + (f' ({transport.profile})' if transport.profile else ''))
         executor = MultiThreadedExecutor() if multithreaded else SingleThreadedExecutor()
         executor.add_node(node)
+        freeze_heap()
         while rclpy.ok():
             executor.spin_once(timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
