@@ -21,7 +21,7 @@ from rosbags.rosbag2 import Reader
 from tqdm import tqdm
 
 from softshape_ros.data.bag_tools import bag_info
-from softshape_ros.data.bag_writer import BagError, jazzy_typestore
+from softshape_ros.data.rosbag2_format import BagError, jazzy_typestore
 from softshape_ros.data.dataset import DatasetWriter
 from softshape_ros.hardware.pressure import measured_in_order
 from softshape_ros.scene import Scene, SceneError
