@@ -32,7 +32,7 @@ from rosbags.rosbag2.enums import CompressionMode
 
 #: rosbags versions this module was checked against (``first <= v <= last``); the same
 #: range is pinned in requirements.txt.
-TESTED_ROSBAGS = ('0.11.9', '0.11.9')
+TESTED_ROSBAGS = ('0.11.6', '0.11.9')
 
 Schema = _mcap.Schema           # MCAP Schema record: id, name, encoding, data
 Channel = _mcap.Channel         # MCAP Channel record: id, schema (name), topic, ..., metadata
