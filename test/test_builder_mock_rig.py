@@ -63,7 +63,7 @@ def test_mock_rig_session_to_dataset(ros, tmp_path):
     # The stored target is the recorded frame for that stamp, preprocessed.
     from rosbags.rosbag2 import Reader
 
-    from softshape_ros.data.bag_writer import jazzy_typestore
+    from softshape_ros.data.rosbag2_format import jazzy_typestore
     ts = jazzy_typestore()
     stamp0 = ds.meta['stamps_ns'][0]
     with Reader(bag) as r:

@@ -55,7 +55,7 @@ class Responder:
         from std_msgs.msg import Float64MultiArray, Header, String
 
         from softshape_ros.config import load_rig_config
-        from softshape_ros.hardware.pressure import FirstOrderRegulator
+        from softshape_ros.pressure import FirstOrderRegulator
         from softshape_ros.nodes.common import LATCHED_QOS, RELIABLE_QOS, stamp_to_ns
         cfg = load_rig_config()
         t = cfg.topics

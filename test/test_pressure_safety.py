@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from hypothesis import given, strategies as st
 
-from softshape_ros.hardware.pressure import CommandError, FirstOrderRegulator, check_command
+from softshape_ros.pressure import CommandError, FirstOrderRegulator, check_command
 
 LIM = [100e3] * 3 + [50e3] * 3
 
@@ -51,7 +51,7 @@ def test_regulator_is_first_order():
 
 
 def test_measured_pressures_are_put_in_config_order_or_refused():
-    from softshape_ros.hardware.pressure import measured_in_order
+    from softshape_ros.pressure import measured_in_order
     names = ['a', 'b', 'c', 'd', 'e', 'f']
     assert measured_in_order(names[::-1], [6, 5, 4, 3, 2, 1], names).tolist() == [1, 2, 3, 4, 5, 6]
     assert measured_in_order([], [1, 2, 3, 4, 5, 6], names).tolist() == [1, 2, 3, 4, 5, 6]

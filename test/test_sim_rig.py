@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from softshape_ros.config import load_rig_config
-from softshape_ros.hardware.pressure import CommandError
+from softshape_ros.pressure import CommandError
 from softshape_ros.scene import Scene
 from softshape_ros.sim import SimRig, SolverError
 

@@ -1,5 +1,5 @@
 """
-Inspect and repair rosbag2 bags: ``softshape bag info`` and ``softshape bag recover``.
+Scan, inspect and repair rosbag2 bags: ``softshape bag info`` and ``softshape bag recover``.
 
 Recovery after a crash (``kill -9``, power loss) works in place: every MCAP file is
 walked record by record; a file without its summary is cut back to the end of its last
@@ -13,24 +13,64 @@ from __future__ import annotations
 import datetime
 import os
 import sqlite3
-import struct
 from collections import defaultdict
 from dataclasses import dataclass, field
-from io import BytesIO
 from pathlib import Path
 
-from rosbags.rosbag2.metadata import parse_qos
-from rosbags.rosbag2.storage_mcap import (Channel, McapWriter, PendingChunk, Schema,
-                                          write_record, write_string, write_uint16,
-                                          write_uint32, write_uint64)
-from ruamel.yaml import YAML
+from softshape_ros.data.rosbag2_format import (MCAP_MAGIC, METADATA_VERSION, STORAGES, U16,
+                                               U32, U64, BagError, FileStats, McapOp,
+                                               TopicSpec, bag_metadata, jazzy_typestore,
+                                               mcap_is_finished, mcap_record, mcap_string,
+                                               metadata_text, read_metadata_yaml,
+                                               write_metadata_yaml)
+from softshape_ros.data.rosbags_adapter import (Channel, McapStorage, Schema, parse_qos,
+                                                zstd_decompress)
 
-from softshape_ros.data.bag_writer import (METADATA_VERSION, STORAGES, BagError, FileStats,
-                                           TopicSpec, bag_metadata, jazzy_typestore,
-                                           write_metadata_yaml)
+_RECORD_HEAD = 9                # opcode + u64 length
 
-MAGIC = b'\x89MCAP0\r\n'
-_U16, _U32, _U64 = struct.Struct('<H'), struct.Struct('<I'), struct.Struct('<Q')
+
+@dataclass
+class ChunkRecord:
+    """A complete Chunk record found in an MCAP file: what its ChunkIndex record needs."""
+
+    start_time: int
+    end_time: int
+    offset: int                     # where the Chunk record starts
+    length: int                     # its length, head included
+    compression: str
+    compressed_size: int
+    uncompressed_size: int
+    entries: dict = field(default_factory=dict)         # channel id -> [(log time, offset)]
+    index_offsets: dict = field(default_factory=dict)   # channel id -> its MessageIndex at
+    index_start: int = 0            # MessageIndex records follow the chunk from here ...
+    index_end: int = 0              # ... to here
+
+    @property
+    def index_complete(self) -> bool:
+        """Every channel with messages in the chunk has its MessageIndex record."""
+        return set(self.index_offsets) == {c for c, e in self.entries.items() if e}
+
+    def message_indexes(self, at: int) -> bytes:
+        """Encode the MessageIndex records of this chunk, written from file offset ``at``."""
+        out = bytearray()
+        self.index_offsets, self.index_start = {}, at
+        for cid, entries in self.entries.items():
+            if not entries:
+                continue
+            self.index_offsets[cid] = at + len(out)
+            body = U16.pack(cid) + U32.pack(len(entries) * 16) + b''.join(
+                U64.pack(t) + U64.pack(off) for t, off in entries)
+            out += mcap_record(McapOp.MESSAGE_INDEX, body)
+        self.index_end = at + len(out)
+        return bytes(out)
+
+    def index_body(self) -> bytes:
+        """Lay out the body of this chunk's ChunkIndex record (MCAP spec, as rosbags does)."""
+        offsets = b''.join(U16.pack(c) + U64.pack(o) for c, o in self.index_offsets.items())
+        return (U64.pack(self.start_time) + U64.pack(self.end_time) + U64.pack(self.offset)
+                + U64.pack(self.length) + U32.pack(len(offsets)) + offsets
+                + U64.pack(self.index_end - self.index_start) + mcap_string(self.compression)
+                + U64.pack(self.compressed_size) + U64.pack(self.uncompressed_size))
 
 
 @dataclass
@@ -39,24 +79,28 @@ class FileScan:
 
     path: Path
     storage: str
+    stats: FileStats
     finished: bool = False
-    good_end: int = 0                 # MCAP: end of the last complete record worth keeping
+    good_end: int = 0               # MCAP: end of the last complete record worth keeping
     size: int = 0
     counts: dict = field(default_factory=dict)          # topic -> messages
-    stats: FileStats = None
     topics: dict = field(default_factory=dict)          # topic -> TopicSpec
     # MCAP only, for rebuilding the summary:
     schemas: dict = field(default_factory=dict)         # id -> Schema
     channels: dict = field(default_factory=dict)        # id -> Channel
-    chunk_index: list = field(default_factory=list)     # per chunk: offsets, times, entries
-    channel_stats: dict = field(default_factory=dict)   # channel id -> messages
+    chunks: list = field(default_factory=list)          # ChunkRecord, in file order
+    channel_counts: dict = field(default_factory=dict)  # channel id -> messages
 
 
-class _Buf:
-    """Little cursor over bytes for MCAP record fields."""
+class _Fields:
+    """Cursor over the fields of an MCAP record body; ValueError past the end."""
 
-    def __init__(self, data: bytes, pos: int = 0):
-        self.data, self.pos = data, pos
+    def __init__(self, data: bytes):
+        self.data, self.pos = data, 0
+
+    @property
+    def left(self) -> int:
+        return len(self.data) - self.pos
 
     def take(self, n: int) -> bytes:
         if self.pos + n > len(self.data):
@@ -65,39 +109,38 @@ class _Buf:
         self.pos += n
         return out
 
-    def u16(self):
-        return _U16.unpack(self.take(2))[0]
+    def u16(self) -> int:
+        return U16.unpack(self.take(2))[0]
 
-    def u32(self):
-        return _U32.unpack(self.take(4))[0]
+    def u32(self) -> int:
+        return U32.unpack(self.take(4))[0]
 
-    def u64(self):
-        return _U64.unpack(self.take(8))[0]
+    def u64(self) -> int:
+        return U64.unpack(self.take(8))[0]
 
     def string(self) -> str:
         return self.take(self.u32()).decode()
 
 
-def _decompress(data: bytes, compression: str, size: int) -> bytes:
+def _decompress(data: bytes, compression: str) -> bytes:
     if compression == '':
         return data
     if compression == 'zstd':
-        from rosbags.rosbag2.storage_mcap import zstd
-        return zstd.decompress(data)
+        return zstd_decompress(data)
     if compression == 'lz4':
         from lz4.frame import decompress
         return decompress(data)
     raise ValueError(f'unsupported chunk compression {compression!r}')
 
 
-def _qos_from_metadata(meta: bytes) -> list:
-    b = _Buf(meta)
-    while b.pos < len(meta):
+def _qos_from_channel(meta: bytes) -> list:
+    b = _Fields(meta)
+    while b.left:
         k, v = b.string(), b.string()
         if k == 'offered_qos_profiles':
             try:
                 return parse_qos(v)
-            except Exception:
+            except ValueError:
                 return []
     return []
 
@@ -107,129 +150,96 @@ def _digest(msgtype: str) -> str:
     return ts.hash_rihs01(msgtype) if msgtype in ts.fielddefs else ''
 
 
-def _scan_chunk_records(raw: bytes, scan: FileScan, stats: FileStats, entries: dict):
-    b = _Buf(raw)
-    while b.pos < len(raw):
+def _scan_records(raw: bytes, scan: FileScan, stats: FileStats, entries: dict) -> None:
+    """Read Schema, Channel and Message records (a chunk's contents, or top-level ones)."""
+    b = _Fields(raw)
+    while b.left:
         at = b.pos
         op = b.take(1)[0]
-        body = _Buf(b.take(b.u64()))
-        if op == 0x03:
+        body = _Fields(b.take(b.u64()))
+        if op == McapOp.SCHEMA:
             sid = body.u16()
             scan.schemas[sid] = Schema(sid, body.string(), body.string(), body.string())
-        elif op == 0x04:
+        elif op == McapOp.CHANNEL:
             cid, sid = body.u16(), body.u16()
             topic, enc = body.string(), body.string()
             meta = body.take(body.u32())
             schema = scan.schemas.get(sid)
             scan.channels[cid] = Channel(cid, schema.name if schema else '', topic, enc, meta)
-        elif op == 0x05:
+        elif op == McapOp.MESSAGE:
             cid = body.u16()
-            body.take(4)
-            t = body.u64()
+            body.take(4)                # sequence
+            t = body.u64()              # log time
             entries[cid].append((t, at))
             stats.add(t)
+
+
+def _read_chunk(body: bytes, scan: FileScan, offset: int, length: int) -> ChunkRecord | None:
+    """Parse a Chunk record and the records in it; None if it is corrupt."""
+    try:
+        b = _Fields(body)
+        t0, t1, usize = b.u64(), b.u64(), b.u64()
+        b.u32()                         # uncompressed CRC (rosbags writes 0)
+        comp = b.string()
+        csize = b.u64()
+        raw = _decompress(b.take(csize), comp)
+        if len(raw) != usize:
+            return None
+        stats, entries = FileStats(''), defaultdict(list)
+        _scan_records(raw, scan, stats, entries)
+    except Exception:                   # corrupt chunk: everything before it is kept
+        return None
+    scan.stats.merge(stats)
+    end = offset + length
+    return ChunkRecord(t0, t1, offset, length, comp, csize, usize, dict(entries),
+                       index_start=end, index_end=end)
 
 
 def scan_mcap(path: Path) -> FileScan:
     """Walk an MCAP file; stop quietly at the first truncated or corrupt record."""
     path = Path(path)
-    scan = FileScan(path, 'mcap', stats=FileStats(path.name))
+    scan = FileScan(path, 'mcap', FileStats(path.name))
     size = scan.size = path.stat().st_size
-    per_channel = defaultdict(int)
     with path.open('rb') as f:
-        if f.read(8) != MAGIC:
+        if f.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
             raise BagError(f'{path}: not an MCAP file (bad magic)')
-        pos = scan.good_end = 8
-        while pos + 9 <= size:
+        pos = scan.good_end = len(MCAP_MAGIC)
+        while pos + _RECORD_HEAD <= size:
             f.seek(pos)
-            head = f.read(9)
-            op, length = head[0], _U64.unpack(head[1:])[0]
-            end = pos + 9 + length
+            head = f.read(_RECORD_HEAD)
+            op, length = head[0], U64.unpack(head[1:])[0]
+            end = pos + _RECORD_HEAD + length
             if end > size:
                 break                       # the record the crash cut in half
             body = f.read(length)
-            if op == 0x06:                  # Chunk
-                try:
-                    b = _Buf(body)
-                    t0, t1, usize = b.u64(), b.u64(), b.u64()
-                    b.u32()
-                    comp = b.string()
-                    csize = b.u64()
-                    raw = _decompress(b.take(csize), comp, usize)
-                    if len(raw) != usize:
-                        break
-                    chunk_stats, entries = FileStats(''), defaultdict(list)
-                    _scan_chunk_records(raw, scan, chunk_stats, entries)
-                except Exception:           # corrupt chunk: everything before it is kept
+            if op == McapOp.CHUNK:
+                chunk = _read_chunk(body, scan, pos, end - pos)
+                if chunk is None:
                     break
-                for cid, e in entries.items():
-                    per_channel[cid] += len(e)
-                if chunk_stats.count:
-                    scan.stats.count += chunk_stats.count
-                    scan.stats.start = min(scan.stats.start, chunk_stats.start)
-                    scan.stats.end = max(scan.stats.end, chunk_stats.end)
-                scan.chunk_index.append({
-                    't0': t0, 't1': t1, 'start': pos, 'length': end - pos, 'offsets': {},
-                    'idx_start': end, 'idx_end': end, 'comp': comp, 'csize': csize,
-                    'usize': usize, 'entries': entries})
-            elif op == 0x07:                # MessageIndex of the last chunk
-                if scan.chunk_index and len(body) >= 2:
-                    scan.chunk_index[-1]['offsets'][_U16.unpack(body[:2])[0]] = pos
-                    scan.chunk_index[-1]['idx_end'] = end
-            elif op in (0x0F, 0x02):        # DataEnd / Footer: the file was finished
+                scan.chunks.append(chunk)
+            elif op == McapOp.MESSAGE_INDEX:     # belongs to the chunk just before it
+                if scan.chunks and len(body) >= 2:
+                    scan.chunks[-1].index_offsets[U16.unpack(body[:2])[0]] = pos
+                    scan.chunks[-1].index_end = end
+            elif op in (McapOp.DATA_END, McapOp.FOOTER):    # the file was finished
                 scan.finished = True
                 scan.good_end = pos
                 break
-            elif op in (0x03, 0x04):        # definitions outside chunks (other writers)
-                _scan_chunk_records(head + body, scan, scan.stats, defaultdict(list))
+            elif op in (McapOp.SCHEMA, McapOp.CHANNEL):     # outside chunks (other writers)
+                _scan_records(head + body, scan, scan.stats, defaultdict(list))
             pos = end
             scan.good_end = pos
-    if scan.chunk_index and not scan.finished:
-        last = scan.chunk_index[-1]
-        if set(last['offsets']) != {c for c, e in last['entries'].items() if e}:
-            scan.good_end = last['idx_start']    # its index was cut: rebuild it
-            last['offsets'], last['idx_end'] = {}, last['idx_start']
-    scan.channel_stats = dict(per_channel)
+    if scan.chunks and not scan.finished and not scan.chunks[-1].index_complete:
+        last = scan.chunks[-1]               # its index was cut: rebuild it
+        scan.good_end = last.index_start
+        last.index_offsets, last.index_end = {}, last.index_start
+    for chunk in scan.chunks:
+        for cid, e in chunk.entries.items():
+            scan.channel_counts[cid] = scan.channel_counts.get(cid, 0) + len(e)
     _fill_topics(scan)
     if scan.finished:
-        with path.open('rb') as f:
-            f.seek(max(0, size - 8))
-            scan.finished = f.read(8) == MAGIC
+        scan.finished = mcap_is_finished(path)
     return scan
-
-
-def _write_message_indexes(bio, idx: dict) -> None:
-    """Append the MessageIndex records of a chunk whose indexes the crash cut off."""
-    for cid, entries in idx['entries'].items():
-        if not entries:
-            continue
-        idx['offsets'][cid] = bio.tell()
-        rec = BytesIO()
-        write_uint16(rec, cid)
-        write_uint32(rec, len(entries) * 16)
-        for t, off in entries:
-            write_uint64(rec, t)
-            write_uint64(rec, off)
-        write_record(bio, 0x07, rec)
-    idx['idx_end'] = bio.tell()
-
-
-def _chunk_index_body(idx: dict) -> BytesIO:
-    """Lay out a ChunkIndex record body as rosbags' writer does."""
-    rec = BytesIO()
-    write_uint64(rec, idx['t0'])
-    write_uint64(rec, idx['t1'])
-    write_uint64(rec, idx['start'])
-    write_uint64(rec, idx['length'])
-    write_uint32(rec, len(idx['offsets']) * 10)
-    for cid, off in idx['offsets'].items():
-        write_uint16(rec, cid)
-        write_uint64(rec, off)
-    write_uint64(rec, idx['idx_end'] - idx['idx_start'])
-    write_string(rec, idx['comp'])
-    write_uint64(rec, idx['csize'])
-    write_uint64(rec, idx['usize'])
-    return rec
 
 
 def _fill_topics(scan: FileScan) -> None:
@@ -239,14 +249,14 @@ def _fill_topics(scan: FileScan) -> None:
             continue
         scan.topics[ch.topic] = TopicSpec(ch.topic, schema.name, schema.data,
                                           _digest(schema.name), schema.encoding or 'ros2msg',
-                                          _qos_from_metadata(ch.metadata))
-        scan.counts[ch.topic] = scan.counts.get(ch.topic, 0) + scan.channel_stats.get(cid, 0)
+                                          _qos_from_channel(ch.metadata))
+        scan.counts[ch.topic] = scan.counts.get(ch.topic, 0) + scan.channel_counts.get(cid, 0)
 
 
 def scan_sqlite3(path: Path) -> FileScan:
     """Read counts and topic definitions of a db3 file (sqlite rolls back a torn commit)."""
     path = Path(path)
-    scan = FileScan(path, 'sqlite3', stats=FileStats(path.name), finished=True)
+    scan = FileScan(path, 'sqlite3', FileStats(path.name), finished=True)
     scan.size = path.stat().st_size
     try:
         conn = sqlite3.connect(f'file:{path}', uri=True)
@@ -266,23 +276,21 @@ def scan_sqlite3(path: Path) -> FileScan:
         enc, text = defs.get(mtype, ('ros2msg', ''))
         try:
             qos_list = parse_qos(qos) if qos else []
-        except Exception:
+        except ValueError:
             qos_list = []
         scan.topics[name] = TopicSpec(name, mtype, text, digest or _digest(mtype), enc, qos_list)
         scan.counts[name] = int(n)
         if n:
-            scan.stats.count += int(n)
-            scan.stats.start = min(scan.stats.start, int(t0))
-            scan.stats.end = max(scan.stats.end, int(t1))
+            scan.stats.merge(FileStats('', int(n), int(t0), int(t1)))
     return scan
 
 
 def scan_file(path) -> FileScan:
     """Scan one storage file by its extension."""
     path = Path(path)
-    if path.suffix == '.mcap':
+    if path.suffix == STORAGES['mcap']:
         return scan_mcap(path)
-    if path.suffix == '.db3':
+    if path.suffix == STORAGES['sqlite3']:
         return scan_sqlite3(path)
     raise BagError(f'{path}: unknown storage file (expected .mcap or .db3)')
 
@@ -290,13 +298,11 @@ def scan_file(path) -> FileScan:
 def _storage_files(bag: Path) -> tuple[str, list[Path]]:
     if not bag.is_dir():
         raise BagError(f'{bag}: no such bag directory')
-    meta = bag / 'metadata.yaml'
     listed = []
-    if meta.is_file():
+    if (bag / 'metadata.yaml').is_file():
         try:
-            info = YAML(typ='safe').load(meta.read_text())['rosbag2_bagfile_information']
-            listed = [bag / p for p in info.get('relative_file_paths', [])]
-        except Exception:
+            listed = [bag / p for p in read_metadata_yaml(bag).get('relative_file_paths', [])]
+        except (BagError, TypeError):
             listed = []
     found = []
     for ext in STORAGES.values():
@@ -307,34 +313,40 @@ def _storage_files(bag: Path) -> tuple[str, list[Path]]:
     storages = {p.suffix for p in files}
     if len(storages) > 1:
         raise BagError(f'{bag}: mixes storage formats {sorted(storages)}')
-    storage = 'mcap' if files[0].suffix == '.mcap' else 'sqlite3'
+    storage = next(s for s, ext in STORAGES.items() if ext == files[0].suffix)
     return storage, files
 
 
 def _split_index(p: Path):
-    stem = p.stem
-    tail = stem.rsplit('_', 1)[-1]
+    tail = p.stem.rsplit('_', 1)[-1]
     return (int(tail) if tail.isdigit() else -1, p.name)
 
 
-def _finalise_mcap(scan: FileScan, metadata_text: str) -> None:
+def _finalise_mcap(scan: FileScan, text: str) -> None:
     """Append summary + footer at the last good byte of an unfinished MCAP file."""
-    w = McapWriter.__new__(McapWriter)
-    w.path = scan.path
-    w.schemas = sorted(scan.schemas.values(), key=lambda s: s.id)
-    w.channels = sorted(scan.channels.values(), key=lambda c: c.id)
     os.truncate(scan.path, scan.good_end)
-    w.bio = scan.path.open('r+b')
-    w.bio.seek(scan.good_end)
-    if scan.chunk_index and not scan.chunk_index[-1]['offsets']:
-        _write_message_indexes(w.bio, scan.chunk_index[-1])
-    w.chunks = [_chunk_index_body(c) for c in scan.chunk_index]
-    w.chunk = PendingChunk(2**63 - 1, 0, BytesIO(), defaultdict(list))
-    w.compression, w.compressor = '', (lambda x: x)
-    w.channel_stats = {c.id: scan.channel_stats.get(c.id, 0) for c in w.channels}
-    w.message_start_time = scan.stats.start if scan.stats.count else 0
-    w.message_end_time = scan.stats.end if scan.stats.count else 0
-    McapWriter.close(w, METADATA_VERSION, metadata_text)
+    bio = scan.path.open('r+b')
+    bio.seek(scan.good_end)
+    if scan.chunks and not scan.chunks[-1].index_offsets:
+        bio.write(scan.chunks[-1].message_indexes(scan.good_end))
+    stats = scan.stats
+    channels = sorted(scan.channels.values(), key=lambda c: c.id)
+    McapStorage(
+        scan.path, bio, zstd=False,
+        schemas=sorted(scan.schemas.values(), key=lambda s: s.id), channels=channels,
+        chunk_indexes=[c.index_body() for c in scan.chunks],
+        channel_counts={c.id: scan.channel_counts.get(c.id, 0) for c in channels},
+        start_time=stats.start if stats.count else 0, end_time=stats.end if stats.count else 0,
+    ).finish(METADATA_VERSION, text)
+
+
+def _bag_metadata_of(storage: str, scans: list[FileScan]) -> dict:
+    topics, counts = {}, defaultdict(int)
+    for s in scans:
+        for name, spec in s.topics.items():
+            topics.setdefault(name, spec)
+            counts[name] += s.counts.get(name, 0)
+    return bag_metadata(storage, [s.stats for s in scans], list(topics.values()), counts)
 
 
 def recover_bag(path) -> dict:
@@ -347,27 +359,23 @@ def recover_bag(path) -> dict:
     bag = Path(path)
     storage, files = _storage_files(bag)
     report = {'bag': str(bag), 'storage': storage, 'files': []}
-    scans = []
-    for p in files:
-        scan = scan_file(p)
-        entry = {'file': p.name, 'was_finished': scan.finished, 'messages': scan.stats.count}
+    scans = [scan_file(p) for p in files]
+    meta = _bag_metadata_of(storage, scans)
+    for i, scan in enumerate(scans):
+        entry = {'file': scan.path.name, 'was_finished': scan.finished,
+                 'messages': scan.stats.count}
         if storage == 'mcap' and not scan.finished:
             entry['cut_bytes'] = scan.size - scan.good_end
-            _finalise_mcap(scan, '')
-            scan = scan_mcap(p)
-            if not scan.finished:
-                raise BagError(f'{p}: could not be finalised')
-        scans.append(scan)
+            _finalise_mcap(scan, metadata_text(meta))
+            scans[i] = scan_mcap(scan.path)
+            if not scans[i].finished:
+                raise BagError(f'{scan.path}: could not be finalised')
         report['files'].append(entry)
-    topics, counts = {}, defaultdict(int)
-    for s in scans:
-        for name, spec in s.topics.items():
-            topics.setdefault(name, spec)
-            counts[name] += s.counts.get(name, 0)
-    meta = bag_metadata(storage, [s.stats for s in scans], list(topics.values()), counts)
+    meta = _bag_metadata_of(storage, scans)
     write_metadata_yaml(bag, meta)
-    report['messages'] = sum(counts.values())
-    report['topics'] = dict(counts)
+    report['topics'] = {t['topic_metadata']['name']: t['message_count']
+                        for t in meta['rosbag2_bagfile_information']['topics_with_message_count']}
+    report['messages'] = sum(report['topics'].values())
     return report
 
 
@@ -375,18 +383,9 @@ def bag_info(path) -> dict:
     """Summarise a bag like ``ros2 bag info`` (from metadata.yaml, files checked)."""
     bag = Path(path)
     storage, files = _storage_files(bag)
-    meta_path = bag / 'metadata.yaml'
-    if not meta_path.is_file():
-        raise BagError(f'{bag}: no metadata.yaml (did the recording crash?); '
-                       f'run `softshape bag recover {bag}`')
-    info = YAML(typ='safe').load(meta_path.read_text())['rosbag2_bagfile_information']
-    unfinished = []
-    for p in files:
-        if p.suffix == '.mcap':
-            with p.open('rb') as f:
-                f.seek(max(0, p.stat().st_size - 8))
-                if f.read(8) != MAGIC:
-                    unfinished.append(p.name)
+    info = read_metadata_yaml(bag)
+    unfinished = [p.name for p in files if p.suffix == STORAGES['mcap']
+                  and not mcap_is_finished(p)]
     return {
         'path': str(bag), 'storage': info.get('storage_identifier', storage),
         'files': [p.name for p in files], 'size_bytes': sum(p.stat().st_size for p in files),
@@ -442,5 +441,5 @@ def format_info(info: dict) -> str:
     return '\n'.join(lines)
 
 
-__all__ = ['FileScan', 'scan_file', 'scan_mcap', 'scan_sqlite3', 'recover_bag', 'bag_info',
-           'format_info']
+__all__ = ['ChunkRecord', 'FileScan', 'scan_file', 'scan_mcap', 'scan_sqlite3', 'recover_bag',
+           'bag_info', 'format_info']

@@ -1,12 +1,12 @@
 """
 Write standard rosbag2 bags (MCAP or sqlite3) that survive crashes and full disks.
 
-Built on the storage plugins of ``rosbags`` (the byte format is theirs), with what a
-recorder needs on top: several files per bag (split by size or duration, as
-``ros2 bag record`` does), a :meth:`BagWriter.flush` that makes everything written so
-far readable after a ``kill -9`` (closes the MCAP chunk, or commits the sqlite
-transaction), and a salvage path for write errors (full disk, file-size limit) that
-cuts the file back to the last flushed byte and finalises it there.
+Built on the storage plugins of ``rosbags`` (the byte format is theirs, reached through
+:mod:`.rosbags_adapter`), with what a recorder needs on top: several files per bag (split
+by size or duration, as ``ros2 bag record`` does), a :meth:`BagWriter.flush` that makes
+everything written so far readable after a ``kill -9`` (closes the MCAP chunk, or commits
+the sqlite transaction), and a salvage path for write errors (full disk, file-size limit)
+that cuts the file back to the last flushed byte and finalises it there.
 """
 
 from __future__ import annotations
@@ -15,231 +15,117 @@ import os
 import sqlite3
 import time
 from collections import defaultdict
-from dataclasses import dataclass, field
 from importlib.metadata import version as _pkg_version
-from io import BytesIO, StringIO
 from pathlib import Path
 
 from rosbags.interfaces import (Connection, ConnectionExtRosbag2, MessageDefinition,
                                 MessageDefinitionFormat)
-from rosbags.rosbag2.enums import CompressionMode
-from rosbags.rosbag2.metadata import dump_qos_v9
-from rosbags.rosbag2.storage_mcap import McapWriter, PendingChunk, write_record, write_string
-from rosbags.rosbag2.storage_sqlite3 import Sqlite3Writer
-from rosbags.typesys import Stores, get_typestore
-from ruamel.yaml import YAML
 
-METADATA_VERSION = 9          # rosbag2 metadata version written by Jazzy
-STORAGES = {'mcap': '.mcap', 'sqlite3': '.db3'}
-_TYPESTORE = None
+from softshape_ros.data.bag_tools import scan_file
+from softshape_ros.data.rosbag2_format import (COMPRESSIONS, METADATA_VERSION, STORAGES,
+                                               BagError, FileStats, TopicSpec, bag_metadata,
+                                               mcap_header, metadata_text, write_metadata_yaml)
+from softshape_ros.data.rosbags_adapter import McapStorage, Sqlite3Storage
 
 
-class BagError(RuntimeError):
-    """A bag cannot be written or read; the message says which file and why."""
+class _McapFile:
+    """One MCAP file of a bag: rosbags' MCAP writer plus flush points and salvage."""
 
-
-def jazzy_typestore():
-    """Return the shared typestore with the Jazzy message definitions (built once)."""
-    global _TYPESTORE
-    if _TYPESTORE is None:
-        _TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
-    return _TYPESTORE
-
-
-@dataclass
-class TopicSpec:
-    """What a bag stores about a topic: type, full definition (for any decoder), QoS."""
-
-    topic: str
-    msgtype: str
-    msgdef: str
-    digest: str
-    encoding: str = 'ros2msg'
-    qos: list = field(default_factory=list)   # rosbags Qos tuples offered by publishers
-
-    @classmethod
-    def from_typestore(cls, topic: str, msgtype: str, qos=(), typestore=None) -> 'TopicSpec':
-        ts = typestore or jazzy_typestore()
-        if msgtype not in ts.fielddefs:
-            raise BagError(f'{topic}: no message definition known for {msgtype}')
-        msgdef, _ = ts.generate_msgdef(msgtype, ros_version=2)
-        return cls(topic, msgtype, msgdef, ts.hash_rihs01(msgtype), 'ros2msg', list(qos))
-
-    def qos_text(self) -> str:
-        dumped = dump_qos_v9(list(self.qos))
-        if isinstance(dumped, str):
-            return dumped
-        return _yaml_text(dumped).strip()
-
-
-def _yaml_text(data) -> str:
-    yaml = YAML(typ='safe')
-    yaml.default_flow_style = False
-    out = StringIO()
-    yaml.dump(data, out)
-    return out.getvalue()
-
-
-class _McapFile(McapWriter):
-    """One MCAP file of a bag: rosbags' writer plus flush points and salvage."""
-
-    def __init__(self, path: Path, compression: CompressionMode):
+    def __init__(self, path: Path, zstd: bool):
         self.path = path
-        self.bio = path.open('xb')
-        self.bio.write(b'\x89MCAP\x30\r\n')
-        rec = BytesIO()
-        write_string(rec, 'ros2')
-        write_string(rec, f'rosbags-{_pkg_version("rosbags")}')
-        write_record(self.bio, 0x01, rec)
-        self.schemas, self.channels, self.chunks = [], [], []
-        self.chunk = PendingChunk(2**63 - 1, 0, BytesIO(), defaultdict(list))
-        if compression == CompressionMode.STORAGE:
-            from rosbags.rosbag2.storage_mcap import zstd
-            self.compression, self.compressor = 'zstd', zstd.compress
-        else:
-            self.compression, self.compressor = '', (lambda x: x)
-        self.message_start_time = 2**63 - 1
-        self.message_end_time = 0
-        self.channel_stats = {}
-        self.bio.flush()
-        self._snapshot()
+        bio = path.open('xb')
+        bio.write(mcap_header(f'rosbags-{_pkg_version("rosbags")}'))
+        self.mcap = McapStorage(path, bio, zstd)
+        bio.flush()
+        self._good = self.mcap.checkpoint()     # the last flush point
 
-    def _snapshot(self):
-        self._good = (self.bio.tell(), len(self.chunks), dict(self.channel_stats),
-                      self.message_start_time, self.message_end_time)
+    @property
+    def bio(self):
+        return self.mcap.bio
 
     @property
     def size(self) -> int:
-        return self.bio.tell() + self.chunk.bio.tell()
+        return self.mcap.bio.tell() + self.mcap.pending_bytes
+
+    def add_msgtype(self, conn: Connection) -> None:
+        self.mcap.add_msgtype(conn)
+
+    def add_connection(self, conn: Connection, qos_text: str) -> None:
+        self.mcap.add_connection(conn, qos_text)
+
+    def write(self, conn: Connection, timestamp: int, data) -> None:
+        self.mcap.write(conn, timestamp, data)
 
     def flush(self, fsync: bool) -> None:
-        if self.chunk.msgs:
-            self.close_chunk()
-        self.bio.flush()
+        if self.mcap.has_pending_messages:
+            self.mcap.close_chunk()
+        self.mcap.bio.flush()
         if fsync:
-            os.fsync(self.bio.fileno())
-        self._snapshot()
+            os.fsync(self.mcap.bio.fileno())
+        self._good = self.mcap.checkpoint()
+
+    def close(self, metadata: str) -> None:
+        self.mcap.finish(METADATA_VERSION, metadata)
 
     def salvage(self, metadata: str) -> bool:
         """Cut back to the last flush and write the summary there; False if even that fails."""
         try:
-            self.bio.close()
+            self.mcap.bio.close()
         except OSError:
             pass
-        good, nchunks, stats, t0, t1 = self._good
+        good = self._good.offset
         os.truncate(self.path, good)
-        self.chunks = self.chunks[:nchunks]
-        self.channel_stats, self.message_start_time, self.message_end_time = stats, t0, t1
-        for ch in self.channels:
-            self.channel_stats.setdefault(ch.id, 0)
-        self.chunk = PendingChunk(2**63 - 1, 0, BytesIO(), defaultdict(list))
         try:
-            self.bio = self.path.open('r+b')
-            self.bio.seek(good)
-            McapWriter.close(self, METADATA_VERSION, metadata)
+            bio = self.path.open('r+b')
+            bio.seek(good)
+            self.mcap.rollback(self._good, bio)
+            self.mcap.finish(METADATA_VERSION, metadata)
             return True
         except OSError:
             try:
-                self.bio.close()
+                self.mcap.bio.close()
             except OSError:
                 pass
             os.truncate(self.path, good)
             return False
 
 
-class _Sqlite3File(Sqlite3Writer):
+class _Sqlite3File:
     """One sqlite3 file of a bag: a commit is a flush point (sqlite's journal does the rest)."""
 
-    def __init__(self, path: Path, compression: CompressionMode):
-        if compression == CompressionMode.STORAGE:
+    def __init__(self, path: Path, zstd: bool):
+        if zstd:
             raise BagError('sqlite3 storage does not support compression')
         if path.exists():
             raise BagError(f'{path}: exists already, not overwriting')
         self.path = path
-        self.conn = sqlite3.connect(f'file:{path}', uri=True, check_same_thread=False)
-        self.conn.executescript(self.SQLITE_SCHEMA)
-        self.cursor = self.conn.cursor()
-        self.bytes = 0
+        self.db = Sqlite3Storage(path)
+        self.size = 0               # message bytes + row overhead, for the size split
 
-    @property
-    def size(self) -> int:
-        return self.bytes
+    def add_msgtype(self, conn: Connection) -> None:
+        self.db.add_msgtype(conn)
 
-    def write(self, connection, timestamp, data):
-        super().write(connection, timestamp, data)
-        self.bytes += len(data) + 24
+    def add_connection(self, conn: Connection, qos_text: str) -> None:
+        self.db.add_connection(conn, qos_text)
+
+    def write(self, conn: Connection, timestamp: int, data) -> None:
+        self.db.write(conn, timestamp, data)
+        self.size += len(data) + 24
 
     def flush(self, fsync: bool) -> None:
-        self.conn.commit()
+        self.db.commit()
+
+    def close(self, metadata: str) -> None:
+        self.db.finish(METADATA_VERSION, metadata)
 
     def salvage(self, metadata: str) -> bool:
         try:
-            self.conn.rollback()
-            self.close(METADATA_VERSION, metadata)
+            self.db.rollback()
+            self.db.finish(METADATA_VERSION, metadata)
             return True
         except sqlite3.Error:
-            try:
-                self.conn.close()
-            except sqlite3.Error:
-                pass
+            self.db.close_quietly()
             return False
-
-
-@dataclass
-class FileStats:
-    """Per-file bookkeeping for metadata.yaml."""
-
-    name: str
-    count: int = 0
-    start: int = 2**63 - 1
-    end: int = 0
-
-    def add(self, t: int) -> None:
-        self.count += 1
-        self.start = min(self.start, t)
-        self.end = max(self.end, t)
-
-    def as_metadata(self) -> dict:
-        start = self.start if self.count else 0
-        return {'path': self.name, 'starting_time': {'nanoseconds_since_epoch': start},
-                'duration': {'nanoseconds': max(0, self.end - self.start) if self.count else 0},
-                'message_count': self.count}
-
-
-def bag_metadata(storage: str, files: list[FileStats], topics: list[TopicSpec],
-                 counts: dict[str, int], compression: str = '') -> dict:
-    """Build the rosbag2 ``metadata.yaml`` mapping (version 9, as Jazzy writes it)."""
-    used = [f for f in files if f.count]
-    start = min((f.start for f in used), default=0)
-    end = max((f.end for f in used), default=0)
-    total = sum(f.count for f in files)
-    return {'rosbag2_bagfile_information': {
-        'version': METADATA_VERSION,
-        'storage_identifier': storage,
-        'relative_file_paths': [f.name for f in files],
-        'duration': {'nanoseconds': max(0, end - start)},
-        'starting_time': {'nanoseconds_since_epoch': start},
-        'message_count': total,
-        'topics_with_message_count': [
-            {'topic_metadata': {'name': t.topic, 'type': t.msgtype,
-                                'serialization_format': 'cdr',
-                                'offered_qos_profiles': t.qos_text(),
-                                'type_description_hash': t.digest},
-             'message_count': int(counts.get(t.topic, 0))}
-            for t in topics],
-        'compression_format': compression,
-        'compression_mode': 'storage' if compression else '',
-        'files': [f.as_metadata() for f in files],
-        'custom_data': None,
-        'ros_distro': 'jazzy',
-    }}
-
-
-def write_metadata_yaml(bag: Path, metadata: dict) -> None:
-    """Write metadata.yaml atomically (tmp + rename), so a reader never sees half of it."""
-    tmp = bag / 'metadata.yaml.tmp'
-    tmp.write_text(_yaml_text(metadata), 'utf8')
-    os.replace(tmp, bag / 'metadata.yaml')
 
 
 class BagWriter:
@@ -249,22 +135,30 @@ class BagWriter:
     Not thread-safe: one thread (the recorder's writer thread) owns it. Any OSError
     while writing (full disk, EFBIG) moves it to :attr:`failed`: the current file is
     salvaged at its last flush, metadata.yaml is written, and further writes are refused.
+    A context manager: leaving the ``with`` block closes the bag (also on an exception,
+    which keeps everything written so far).
+
+    ``path`` is the bag directory to create (must not exist); ``storage`` is ``mcap`` or
+    ``sqlite3``; ``compression`` ``none`` or ``zstd`` (MCAP chunk compression); a new file
+    starts at ``max_bytes`` or after ``max_duration_s`` (0: never); ``fsync`` makes every
+    flush survive power loss too, not only a crash.
     """
 
     def __init__(self, path, storage: str = 'mcap', compression: str = 'none',
                  max_bytes: int = 0, max_duration_s: float = 0.0, fsync: bool = False):
         if storage not in STORAGES:
             raise BagError(f'storage must be one of {sorted(STORAGES)}, got {storage!r}')
-        if compression not in ('none', 'zstd'):
+        if compression not in COMPRESSIONS:
             raise BagError(f'compression must be none or zstd, got {compression!r}')
         if compression == 'zstd' and storage != 'mcap':
-            raise BagError('zstd compression needs the mcap storage')
+            raise BagError('zstd compression needs the mcap storage (chunk compression); '
+                           'sqlite3 bags would need rosbag2\'s file or message compression, '
+                           'which this writer does not do')
         self.path = Path(path)
         if self.path.exists():
             raise BagError(f'{self.path}: exists already, not overwriting')
         self.storage = storage
-        self.compression = CompressionMode.STORAGE if compression == 'zstd' else \
-            CompressionMode.NONE
+        self.compression = compression
         self.max_bytes, self.max_duration_ns = int(max_bytes), int(max_duration_s * 1e9)
         self.fsync = fsync
         self.topics: dict[str, TopicSpec] = {}
@@ -299,7 +193,7 @@ class BagWriter:
     def _open_file(self) -> None:
         name = f'{self.path.name}_{len(self.files)}{STORAGES[self.storage]}'
         cls = _McapFile if self.storage == 'mcap' else _Sqlite3File
-        self._file = cls(self.path / name, self.compression)
+        self._file = cls(self.path / name, self.compression == 'zstd')
         self.files.append(FileStats(name))
         self.file_counts.append(defaultdict(int))
         self._conns = {}
@@ -327,12 +221,11 @@ class BagWriter:
         write_metadata_yaml(self.path, self.metadata())
 
     def metadata(self) -> dict:
-        comp = 'zstd' if self.compression == CompressionMode.STORAGE else ''
-        return bag_metadata(self.storage, self.files, list(self.topics.values()),
-                            self.counts, comp)
+        """Return the metadata.yaml mapping of what is written so far."""
+        return bag_metadata(self.storage, self.files, list(self.topics.values()), self.counts)
 
     def _file_metadata_text(self) -> str:
-        return _yaml_text(self.metadata()['rosbag2_bagfile_information']).strip()
+        return metadata_text(self.metadata())
 
     # -- writing -------------------------------------------------------------------------
     def add_topic(self, spec: TopicSpec) -> None:
@@ -376,7 +269,7 @@ class BagWriter:
         """Finish the current file and continue in a new one (same bag)."""
         if self.failed or self.closed:
             return False
-        if not self._guard(self._file.close, METADATA_VERSION, self._file_metadata_text()):
+        if not self._guard(self._file.close, self._file_metadata_text()):
             return False
         self._file = None
         return self._guard(self._open_file)
@@ -384,10 +277,16 @@ class BagWriter:
     def close(self) -> dict:
         """Finalise the current file and metadata.yaml; returns the metadata mapping."""
         if not self.closed and not self.failed:
-            if self._guard(self._file.close, METADATA_VERSION, self._file_metadata_text()):
+            if self._guard(self._file.close, self._file_metadata_text()):
                 self._guard(self._write_metadata)
         self.closed = True
         return self.metadata()
+
+    def __enter__(self) -> 'BagWriter':
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.close()
 
     def _guard(self, fn, *args) -> bool:
         try:
@@ -410,7 +309,6 @@ class BagWriter:
         # Counts in metadata.yaml must describe what is on disk: recount after salvage.
         try:
             if f is not None:
-                from softshape_ros.data.bag_tools import scan_file
                 scan = scan_file(f.path)
                 self.file_counts[-1] = defaultdict(int, scan.counts)
                 self.files[-1] = scan.stats
@@ -420,3 +318,6 @@ class BagWriter:
         where = f.path.name if f is not None else self.path.name
         self.failed = (f'write failed on {where}: {reason}; bag kept up to the last flush'
                        + ('' if finalised else ' (run `softshape bag recover` on it)'))
+
+
+__all__ = ['BagError', 'BagWriter', 'TopicSpec']

@@ -21,9 +21,9 @@ from rosbags.rosbag2 import Reader
 from tqdm import tqdm
 
 from softshape_ros.data.bag_tools import bag_info
-from softshape_ros.data.bag_writer import BagError, jazzy_typestore
 from softshape_ros.data.dataset import DatasetWriter
-from softshape_ros.hardware.pressure import measured_in_order
+from softshape_ros.data.rosbag2_format import BagError, jazzy_typestore
+from softshape_ros.pressure import measured_in_order
 from softshape_ros.scene import Scene, SceneError
 from softshape_ros.vision.image_msg import decode_image, stamp_ns
 from softshape_ros.vision.preprocess import ImageError, crop_for, preprocess

@@ -1,1 +1,1 @@
-"""Hardware (no rclpy): pressure command safety, serial protocol, link, virtual Due."""
+"""Hardware (no rclpy): serial protocol, Due link, virtual Due (checks: softshape_ros.pressure)."""

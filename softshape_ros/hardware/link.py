@@ -2,7 +2,7 @@
 The host end of the Due serial link: handshake, commands with acknowledgement, reconnect.
 
 Safety rules this class keeps (docs/design.md "Safety"): it sends only what
-:func:`~softshape_ros.hardware.pressure.check_command` accepted, clamped to the lower of the
+:func:`~softshape_ros.pressure.check_command` accepted, clamped to the lower of the
 configured and the firmware's limits; every (re)connection ends its handshake with a vent,
 so nothing from before a lost link is ever applied again until a fresh command arrives; a
 heartbeat keeps the firmware watchdog fed only while this process is alive; close() vents.
@@ -22,7 +22,7 @@ import numpy as np
 import serial
 
 from softshape_ros.hardware import protocol as P
-from softshape_ros.hardware.pressure import N_CHAMBERS
+from softshape_ros.pressure import N_CHAMBERS
 
 _U32 = 1 << 32
 

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from softshape_ros.hardware.due_core import DueCore
-from softshape_ros.hardware.pressure import FirstOrderRegulator
+from softshape_ros.pressure import FirstOrderRegulator
 
 
 @dataclass(frozen=True)

@@ -2,7 +2,7 @@
 The inference-side API: uint8 images + pressures in Pa in, uint8 images out.
 
 Inputs are checked the way every pressure path in the project checks them
-(:func:`softshape_ros.hardware.pressure.check_command`: 6 finite, non-negative values,
+(:func:`softshape_ros.pressure.check_command`: 6 finite, non-negative values,
 clamped to the model's training maxima).
 """
 
@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from softshape_ros.hardware.pressure import check_command
+from softshape_ros.pressure import check_command
 from softshape_ros.model.checkpoint import load_checkpoint
 
 

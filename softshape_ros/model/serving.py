@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 
 from softshape_ros.config import RigConfig
-from softshape_ros.hardware.pressure import CommandError, check_command
+from softshape_ros.pressure import CommandError, check_command
 from softshape_ros.vision.preprocess import crop_for, preprocess
 
 

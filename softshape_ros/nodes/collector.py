@@ -27,7 +27,7 @@ from sensor_msgs.msg import JointState, TimeReference
 from std_msgs.msg import Float64MultiArray, Header, String
 from std_srvs.srv import Trigger
 
-from softshape_ros.hardware.pressure import CommandError, check_command, measured_in_order
+from softshape_ros.pressure import CommandError, check_command, measured_in_order
 from softshape_ros.nodes.common import (ERROR, LATCHED_QOS, OK, RELIABLE_QOS, WARN,
                                         declare_rig_config, diagnostic_status, main_wrapper,
                                         publish_diagnostics, stamp_to_ns)

@@ -23,7 +23,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, JointState, TimeReference
 from std_msgs.msg import Float64MultiArray, Header, String
 
-from softshape_ros.hardware.pressure import CommandError, FirstOrderRegulator, check_command
+from softshape_ros.pressure import CommandError, FirstOrderRegulator, check_command
 from softshape_ros.nodes.camera_trigger import camera_info_msg, time_reference_msg
 from softshape_ros.nodes.common import (ERROR, IMAGE_QOS, LATCHED_QOS, OK, RELIABLE_QOS,
                                         SENSOR_QOS, WARN,

@@ -21,7 +21,7 @@ from std_srvs.srv import SetBool, Trigger
 
 from softshape_ros.hardware import protocol as P
 from softshape_ros.hardware.link import DueLink, LinkDown
-from softshape_ros.hardware.pressure import CommandError, check_command
+from softshape_ros.pressure import CommandError, check_command
 from softshape_ros.nodes.common import (ERROR, OK, RELIABLE_QOS, WARN, declare_rig_config,
                                         diagnostic_status, main_wrapper, ns_to_stamp,
                                         publish_diagnostics)

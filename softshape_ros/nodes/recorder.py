@@ -69,7 +69,7 @@ def spec_from_class(topic: str, msgtype: str, cls, qos=()) -> TopicSpec:
     added the same way, so any decoder can read the recorded messages.
     """
     from rosbags.typesys import get_types_from_msg
-    from softshape_ros.data.bag_writer import jazzy_typestore
+    from softshape_ros.data.rosbag2_format import jazzy_typestore
     base = jazzy_typestore()
     types, todo = {}, [(msgtype, cls)]
     while todo:

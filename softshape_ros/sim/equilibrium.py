@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from softshape_ros.config import RigConfig
-from softshape_ros.hardware.pressure import check_command
+from softshape_ros.pressure import check_command
 from softshape_ros.sim.contact import ContactModel
 from softshape_ros.sim.objects import obstacle_from_scene
 from softshape_ros.sim.rig import chamber_actuators

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from softshape_ros.config import RigConfig
-from softshape_ros.hardware.pressure import check_command
+from softshape_ros.pressure import check_command
 from softshape_ros.scene import Scene
 from softshape_ros.sim.camera import PinholeCamera
 from softshape_ros.sim.contact import DEFAULT_SMOOTHING_M, DEFAULT_STIFFNESS_N_M, ContactModel

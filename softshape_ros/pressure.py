@@ -1,9 +1,11 @@
 """
-Pressure command safety and the regulator model, shared by host, mock and inference.
+Pressure command safety and the regulator model: rig-level, for every layer to use.
 
-Every path that turns a number into air (pressure_bridge, mock_hardware) and every path
-that predicts from one (inference) checks commands the same way: 6 values, finite, not
-negative; above a chamber's limit is clamped and reported, never silently passed on.
+Every path that turns a number into air (pressure_bridge, mock_hardware, the simulator)
+and every path that predicts from one (inference) checks commands the same way: 6 values,
+finite, not negative; above a chamber's limit is clamped and reported, never silently
+passed on. It sits beside config.py and scene.py, under no layer, so that sim/, model/,
+data/ and hardware/ all depend on it and never on each other for it.
 """
 
 from __future__ import annotations
