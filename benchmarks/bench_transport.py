@@ -48,7 +48,7 @@ def _stats(values_ms) -> dict:
 
 
 def _init_ros():
-    from softshape_ros.nodes.transport import configure_transport
+    from softshape_ros.transport import configure_transport
     choice = configure_transport()
     import rclpy
     rclpy.init()

@@ -12,7 +12,7 @@ os.environ.setdefault('PYTHONUNBUFFERED', '1')
 
 import pytest  # noqa: E402
 
-from softshape_ros.nodes.transport import configure_transport  # noqa: E402
+from softshape_ros.transport import configure_transport  # noqa: E402
 
 # The transport every node uses (the package's Fast DDS profile, unless the environment names
 # another): set before rclpy starts, inherited by the nodes a test starts as processes.
@@ -42,7 +42,7 @@ def _import_and_freeze() -> None:
     for m in pkgutil.iter_modules(softshape_ros.nodes.__path__):
         importlib.import_module(f'softshape_ros.nodes.{m.name}')
     import softshape_ros.model.train  # noqa: F401
-    from softshape_ros.data.bag_writer import jazzy_typestore
+    from softshape_ros.data.rosbag2_format import jazzy_typestore
     from softshape_ros.nodes.common import freeze_heap
     jazzy_typestore()
     freeze_heap()
@@ -100,8 +100,12 @@ def ros(rclpy_session):
         def node(self, name):
             return self.add(rclpy_session.create_node(name))
 
-        def wait_for(self, predicate, timeout: float = 10.0, what: str = 'condition'):
-            """Return ``predicate()`` once true; fail the test with ``what`` past the deadline."""
+        def wait_for(self, predicate, timeout: float = 10.0, what='condition'):
+            """
+            Return ``predicate()`` once true; fail the test with ``what`` past the deadline.
+
+            ``what`` may be a callable, called at the deadline to say what was seen instead.
+            """
             deadline = time.monotonic() + timeout * TIMEOUT_SCALE
             with self.changed:
                 while True:
@@ -111,7 +115,7 @@ def ros(rclpy_session):
                     left = deadline - time.monotonic()
                     if left <= 0:
                         pytest.fail(f'timed out after {timeout * TIMEOUT_SCALE:.1f} s '
-                                    f'waiting for {what}')
+                                    f'waiting for {what() if callable(what) else what}')
                     self.changed.wait(min(left, 0.1))
 
         def close(self):

@@ -1,8 +1,8 @@
 """
 The package's layers, checked from its source: who may import whom, and no import cycles.
 
-The floor (config.py, scene.py, pressure.py) imports no other part of the package; the
-core (sim/ hardware/ vision/ data/ model/ control/) imports the floor and each other
+The floor (config.py, scene.py, pressure.py, transport.py) imports no other part of the
+package; the core (sim/ hardware/ vision/ data/ model/ control/) imports the floor and each other
 without cycles and never rclpy or the application layer (nodes/, commands/, demo/, cli.py,
 processes.py); model/ and sim/ do not import each other (experiments that need both live a
 floor above them); only the application layer drives hardware/. Imports inside functions
@@ -17,7 +17,7 @@ from collections import defaultdict
 from pathlib import Path
 
 PKG = Path(__file__).resolve().parent.parent / 'softshape_ros'
-FLOOR = {'config', 'scene', 'pressure'}
+FLOOR = {'config', 'scene', 'pressure', 'transport'}
 CORE = {'sim', 'hardware', 'vision', 'data', 'model', 'control'}
 APP = {'nodes', 'commands', 'demo', 'cli', 'processes'}
 ROS = ('rclpy', 'launch', 'launch_ros')

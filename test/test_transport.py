@@ -15,8 +15,8 @@ import threading
 
 import pytest
 
-from softshape_ros.nodes.transport import (PROFILE_ENV, TransportProfileError,
-                                           configure_transport, package_profile)
+from softshape_ros.transport import (PROFILE_ENV, TransportProfileError, configure_transport,
+                                     package_profile)
 
 
 def test_the_package_profile_is_used_by_default_and_names_the_file():
@@ -116,8 +116,12 @@ def test_best_effort_subscriber_in_another_process_gets_every_free_run_frame(ros
         def sixty_in_a_row_received():
             stamps, got = window()
             return len(stamps) == 60 and set(stamps) <= got
-        ros.wait_for(sixty_in_a_row_received, 30,
-                     what='60 captured frames in a row at the best-effort subscriber')
+        def state():
+            stamps, got = window()
+            return (f'60 captured frames in a row at the best-effort subscriber (captured '
+                    f'{len(captured)}, received {len(got)}, missing in the window '
+                    f'{len(set(stamps) - got)})')
+        ros.wait_for(sixty_in_a_row_received, 30, what=state)
     finally:
         cam.terminate()
         out, _ = cam.communicate(timeout=30)

@@ -25,7 +25,7 @@ from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityP
 from sensor_msgs.msg import Image
 
 from softshape_ros.config import RigConfig, load_rig_config
-from softshape_ros.nodes.transport import TransportProfileError, configure_transport
+from softshape_ros.transport import TransportProfileError, configure_transport
 from softshape_ros.vision.image_msg import ENCODINGS, decode_image, stamp_ns
 
 #: The sensor-data profile (best effort, keep last 5), docs/design.md's choice for images.

@@ -39,7 +39,7 @@ class TransportChoice:
 
 def package_profile() -> Path:
     """Return the shipped profile: the source tree's ``config/``, else the ament share dir."""
-    src = Path(__file__).resolve().parents[2] / 'config' / PROFILE_NAME
+    src = Path(__file__).resolve().parents[1] / 'config' / PROFILE_NAME
     if src.is_file():
         return src
     try:
