@@ -116,6 +116,7 @@ def test_best_effort_subscriber_in_another_process_gets_every_free_run_frame(ros
         def sixty_in_a_row_received():
             stamps, got = window()
             return len(stamps) == 60 and set(stamps) <= got
+
         def state():
             stamps, got = window()
             return (f'60 captured frames in a row at the best-effort subscriber (captured '
