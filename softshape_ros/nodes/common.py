@@ -24,6 +24,7 @@ from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityP
 from sensor_msgs.msg import Image
 
 from softshape_ros.config import RigConfig, load_rig_config
+from softshape_ros.nodes.parameters import Param, declare
 from softshape_ros.vision.image_msg import ENCODINGS, decode_image, stamp_ns
 
 #: The sensor-data profile (best effort, keep last 5), docs/design.md's choice for images.
@@ -46,9 +47,13 @@ OK, WARN, ERROR, STALE = (DiagnosticStatus.OK, DiagnosticStatus.WARN,
                           DiagnosticStatus.ERROR, DiagnosticStatus.STALE)
 
 
+#: Every node's first parameter: which rig.yaml to load.
+CONFIG_FILE = Param('config_file', '', "the rig config YAML ('' = the installed config/rig.yaml)")
+
+
 def declare_rig_config(node: Node) -> RigConfig:
     """Declare the ``config_file`` parameter ('' = the package's rig.yaml) and load it."""
-    path = node.declare_parameter('config_file', '').value
+    path = declare(node, [CONFIG_FILE]).config_file
     return load_rig_config(path or None)
 
 
