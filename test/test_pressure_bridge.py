@@ -103,7 +103,8 @@ def start_bridge(ros, vd, activate=True, **params):
     # The virtual Due runs as a thread of this test process, which a busy machine can leave
     # unscheduled for 1-2 s: link timeout and firmware watchdog leave room for that.
     p = {'port': vd.path if vd is not None else '', 'max_pressure_pa': PARAM_LIMITS,
-         'watchdog_timeout_s': 30.0, 'firmware_watchdog_s': 3.0, 'link_timeout_s': 3.0, 'diagnostic_updater.period': 0.2}
+         'watchdog_timeout_s': 30.0, 'firmware_watchdog_s': 3.0, 'link_timeout_s': 3.0,
+         'diagnostic_updater.period': 0.2}
     p.update(params)
     node = ros.add(PressureBridge(parameter_overrides=[Parameter(k, value=v)
                                                        for k, v in p.items()]))

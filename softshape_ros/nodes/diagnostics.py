@@ -92,7 +92,7 @@ class _Updater:
         return self._period
 
     def add(self, *args) -> None:
-        """``add(name, fn)`` or ``add(task)``; fn(stat) fills and returns the status."""
+        """Add a task, as (name, fn) or a task object; fn(stat) fills and returns the status."""
         task = _Task(args[0], args[1]) if len(args) == 2 else _Task(args[0].name, args[0].run)
         with self.lock:
             self.tasks.append(task)
