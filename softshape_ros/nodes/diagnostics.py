@@ -19,7 +19,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
 __all__ = ['Updater', 'DiagnosticStatusWrapper', 'FrequencyStatus', 'FrequencyStatusParam',
            'HeaderlessTopicDiagnostic', 'USING_DIAGNOSTIC_UPDATER', 'OK', 'WARN', 'ERROR',
-           'STALE', 'topic_frequency']
+           'STALE', 'topic_frequency', 'TriggeredRate', 'fill']
 
 OK, WARN, ERROR, STALE = (DiagnosticStatus.OK, DiagnosticStatus.WARN,
                           DiagnosticStatus.ERROR, DiagnosticStatus.STALE)
@@ -242,6 +242,53 @@ def topic_frequency(updater, topic: str, rate_hz: float, tolerance: float = 0.3,
     bound = {'min': rate_hz, 'max': rate_hz}
     return HeaderlessTopicDiagnostic(topic, updater,
                                      FrequencyStatusParam(bound, tolerance, window_size))
+
+
+class TriggeredRate:
+    """
+    A ``<topic> topic status`` for a triggered stream: its rate is the trigger rate.
+
+    A fixed frequency bound would call an idle rig an error; instead each trigger counts
+    as answered (``tick``) or missed (``miss``), and a window with misses is a WARN.
+    """
+
+    def __init__(self, updater, topic: str):
+        self.name = f'{topic} topic status'
+        self.lock = threading.Lock()
+        self.events = self.misses = self.total = 0
+        self.last = time.monotonic()
+        updater.add(self.name, self.run)
+
+    def tick(self) -> None:
+        """Count one message sent."""
+        with self.lock:
+            self.events += 1
+            self.total += 1
+
+    def miss(self) -> None:
+        """Count one trigger that got no message."""
+        with self.lock:
+            self.misses += 1
+
+    def run(self, stat):
+        with self.lock:
+            now = time.monotonic()
+            window = max(now - self.last, 1e-9)
+            events, misses = self.events, self.misses
+            self.events = self.misses = 0
+            self.last = now
+        if misses:
+            stat.summary(WARN, f'{misses} trigger(s) without a frame.')
+        elif events == 0:
+            stat.summary(OK, 'No triggers in window.')
+        else:
+            stat.summary(OK, 'Every trigger answered')
+        stat.add('Events in window', '%d' % events)
+        stat.add('Missed triggers in window', '%d' % misses)
+        stat.add('Events since startup', '%d' % self.total)
+        stat.add('Duration of window (s)', '%f' % window)
+        stat.add('Actual frequency (Hz)', '%f' % (events / window))
+        return stat
 
 
 def fill(stat, level, message: str, values: dict, hardware_id: str = ''):

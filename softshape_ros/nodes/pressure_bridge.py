@@ -32,7 +32,7 @@ from softshape_ros.nodes.parameters import Param, declare
 
 
 def parameters(cfg) -> list[Param]:
-    """Return the bridge's parameters; limits default to rig.yaml's."""
+    """List what the bridge takes (limits default to rig.yaml's)."""
     limits = [float(x) for x in cfg.max_pressures_pa]
     return [
         Param('port', '/dev/ttyACM0', "the Due's serial port (a by-id symlink is steadier)"),
