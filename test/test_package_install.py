@@ -437,3 +437,16 @@ def test_every_import_is_declared_for_rosdep_or_the_jazzy_venv():
     python_keys = {k for k in keys if k.startswith('python3-') or k.endswith('-support')}
     assert python_keys <= set(ROSDEP_PYTHON_KEYS.values()) | {
         'python3-pytest-timeout', 'python3-colcon-common-extensions'}, python_keys
+
+
+def test_nodes_report_through_their_logger_not_print():
+    """Errors reach /rosout and the launch log only through the node's logger."""
+    import ast
+    # common.py's run_node reports a node that failed to start (no logger yet); it is
+    # being reworked with the DDS profile set-up and keeps its own reporting until then.
+    for path in sorted((ROOT / PKG / 'nodes').glob('*.py')):
+        if path.stem == 'common':
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            assert not (isinstance(node, ast.Call) and getattr(node.func, 'id', '') == 'print'), (
+                f'{path.name}:{node.lineno}: print() in a node; use self.get_logger()')

@@ -363,17 +363,21 @@ def test_limits_may_be_lowered_at_run_time_and_a_raise_is_refused(ros, vdue):
     result = c.set_param('max_pressure_pa', [40000] * 6)
     assert result.successful, result.reason
     assert node.params.max_pressure_pa == [40000.0] * 6
+    # one number, as in `ros2 param set /pressure_bridge max_pressure_pa 35000`: every chamber
+    result = c.set_param('max_pressure_pa', 35000)
+    assert result.successful, result.reason
+    assert node.params.max_pressure_pa == [35000.0] * 6
     # raising is refused with the reason, and nothing changes
     result = c.set_param('max_pressure_pa', [150000.0] * 6)
     assert not result.successful
-    assert 'may only be lowered at run time: chamber 0 from 40000 to 150000' in result.reason
+    assert 'may only be lowered at run time: chamber 0 from 35000 to 150000' in result.reason
     result = c.set_param('max_pressure_pa', [1000.0] * 5)
     assert not result.successful and 'needs 6 values' in result.reason
     result = c.set_param('port', '/dev/null')
     assert not result.successful and 'read-only' in result.reason
-    assert node.limits == [40000.0] * 6 and node.params.port == vdue.path
+    assert node.limits == [35000.0] * 6 and node.params.port == vdue.path
     c.command([1e9] * 6)
-    ros.wait_for(lambda: vdue.applied()[-1].setpoints_pa == (40000,) * 6, 5,
+    ros.wait_for(lambda: vdue.applied()[-1].setpoints_pa == (35000,) * 6, 5,
                  what='still clamped to the lowered limits')
 
 

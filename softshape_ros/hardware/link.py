@@ -12,6 +12,7 @@ No rclpy here: the ``pressure_bridge`` node is a thin adapter over it.
 from __future__ import annotations
 
 import collections
+import logging
 import statistics
 import threading
 import time
@@ -25,6 +26,7 @@ from softshape_ros.hardware import protocol as P
 from softshape_ros.hardware.pressure import N_CHAMBERS
 
 _U32 = 1 << 32
+_log = logging.getLogger(__name__)
 
 
 class LinkDown(RuntimeError):
@@ -227,7 +229,7 @@ class DueLink:
         try:
             self._on_event(level, text)
         except Exception as exc:  # noqa: BLE001 - report and keep the link alive
-            print(f'due_link: on_event failed: {exc!r} ({level}: {text})', flush=True)
+            _log.error('on_event failed: %r (%s: %s)', exc, level, text)
 
     def on_state(self, m: Measurement) -> None:
         try:

@@ -9,8 +9,9 @@ rclpy's own declaration:
   start-up-only ones), so ``ros2 param describe`` says what it is and rclpy refuses values
   out of range with the reason;
 - a float parameter accepts an integer (``-p fps:=30``), an integer-valued one given as a
-  whole float, and a float array accepts integers, at start-up and at run time (rclpy
-  types a parameter by its default and would refuse them);
+  whole float, a float array accepts integers, and a fixed-length array one number for
+  every element (``ros2 param set /pressure_bridge max_pressure_pa 50000``), at start-up
+  and at run time (rclpy types a parameter by its default and would refuse them);
 - ``dynamic=True`` keeps a parameter dynamically typed where a value may be either of two
   kinds (a camera ``source`` that is an index or a path);
 - live parameters are applied through one callback: the node's ``check`` may refuse a
@@ -44,7 +45,8 @@ class Param:
     ``range`` is inclusive ``(low, high)``; for arrays it bounds every element.
     ``live`` parameters may be set at run time; all others are read-only after start-up.
     ``dynamic`` parameters take a string or an integer (a path or an index).
-    ``length`` fixes the number of elements of an array parameter.
+    ``length`` fixes the number of elements of an array parameter (one number is taken for
+    all of them).
     ``choices`` lists the accepted values of a string parameter.
     """
 
@@ -129,6 +131,8 @@ def coerce(spec: Param, value: Any) -> Any:
             return int(value)
         return float(value)
     if t in (Parameter.Type.DOUBLE_ARRAY, Parameter.Type.INTEGER_ARRAY):
+        if spec.length and isinstance(value, (int, float)) and not isinstance(value, bool):
+            value = [value] * spec.length        # `param set ... 50000`: every element
         items = _items(value)
         if items is None or any(isinstance(v, bool) or not isinstance(v, (int, float))
                                 for v in items):
