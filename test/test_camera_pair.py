@@ -19,7 +19,7 @@ def start_camera(camera, source, fps):
     return subprocess.Popen(
         [sys.executable, '-c', code, '--ros-args', '-r', f'__node:=camera_{camera}',
          '-p', f'camera_name:={camera}', '-p', f'source:={source}', '-p', f'fps:={fps}',
-         '-p', 'diagnostics_period_s:=0.5',
+         '-p', 'diagnostic_updater.period:=0.5',
          '-p', 'max_trigger_age_s:=10.0'],      # a loaded CI machine delivers late
         env=dict(os.environ), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
@@ -101,7 +101,7 @@ def test_two_camera_processes_answer_100_triggers_with_matching_stamps(ros, tmp_
         counts = {c: (len(cap[c]), len(got[c])) for c in cap}
         assert all(n == (N_TRIGGERS, N_TRIGGERS) for n in counts.values()), (
             f'(capture times, images) per camera after 100 triggers: {counts}')
-        ros.wait_for(lambda: all(diags.get(f'camera_trigger: {c}', {}).get('frames')
+        ros.wait_for(lambda: all(diags.get(f'camera_{c}: {c} camera', {}).get('frames')
                                  == str(N_TRIGGERS) for c in ('main', 'side')),
                      timeout=10, what='diagnostics with the final counts')
     finally:
@@ -119,6 +119,6 @@ def test_two_camera_processes_answer_100_triggers_with_matching_stamps(ros, tmp_
             for s in sent:
                 index = decode_index(image_to_numpy(got[c][s][0]))
                 assert index == int(cap[c][s] * fps // 1_000_000_000) % 12
-        d = diags['camera_trigger: main']
+        d = diags['camera_main: main camera']
     assert "'n': 100" in d['pair_skew_ms']            # the node paired every frame with side's
     assert int(d['pairs_over_bound']) == sum(sk > 10_000_000 for sk in skews)

@@ -38,7 +38,7 @@ class Probe:
         self.node.create_subscription(
             DiagnosticArray, t.diagnostics,
             lambda m: self._add(self.diags, [s for s in m.status
-                                             if s.name == f'camera_trigger: {camera}']),
+                                             if s.name == f'camera_trigger: {camera} camera']),
             RELIABLE_QOS)
         self.Header = Header
 
@@ -64,7 +64,7 @@ class Probe:
 
 def _camera(ros, **params):
     from softshape_ros.nodes.camera_trigger import CameraTrigger
-    base = {'camera_name': 'main', 'reconnect_period_s': 0.2, 'diagnostics_period_s': 0.2}
+    base = {'camera_name': 'main', 'reconnect_period_s': 0.2, 'diagnostic_updater.period': 0.2}
     base.update(params)
     node = CameraTrigger(parameter_overrides=[Parameter(k, value=v) for k, v in base.items()])
     return ros.add(node)
@@ -207,3 +207,99 @@ def test_pairs_over_the_skew_bound_are_flagged(ros, tmp_path):
     assert main.skew.flagged == 5 and side.skew.flagged == 0    # each instance, its own bound
     ros.wait_for(lambda: probe.last_level() == 1, what='diagnostics WARN on main')
     assert 'capture skew over 0 ms' in probe.diags[-1].message
+
+
+def test_an_integer_source_and_fps_start_the_node_and_report_no_camera(ros):
+    """``ros2 run ... --ros-args -p source:=0 -p fps:=30``: typed int, taken as index and Hz."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    probe = Probe(ros)
+    proc = subprocess.Popen(
+        [sys.executable, '-c', 'from softshape_ros.nodes.camera_trigger import main; main()',
+         '--ros-args', '-p', 'source:=0', '-p', 'fps:=30',
+         '-p', 'diagnostic_updater.period:=0.2'],
+        env=dict(os.environ), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        ros.wait_for(lambda: probe.last_level() == 2 or proc.poll() is not None, 60,
+                     what='diagnostics from the camera node')
+        assert proc.poll() is None, proc.communicate()[0]
+        with probe.lock:
+            status = probe.diags[-1]
+        assert status.message.startswith('no camera')
+        values = {kv.key: kv.value for kv in status.values}
+        assert values['source'] == '0'
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=20)
+        assert proc.returncode == 0, out
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+
+
+def test_under_sim_time_triggers_are_aged_and_captures_stamped_on_ros_time(ros, tmp_path):
+    from rosgraph_msgs.msg import Clock
+
+    from softshape_ros.nodes.common import ns_to_stamp, stamp_to_ns
+    from softshape_ros.vision.patterns import write_video
+    sim_ns = 5_000 * 10**9                                  # far from wall time
+    clock_pub = ros.node('sim_clock').create_publisher(Clock, '/clock', 10)
+    probe = Probe(ros)
+    node = _camera(ros, source=str(write_video(tmp_path / 'c.avi', 12, fps=10.0)),
+                   use_sim_time=True, max_trigger_age_s=0.5)
+    ros.wait_for(lambda: (clock_pub.publish(Clock(clock=ns_to_stamp(sim_ns))),
+                          time.sleep(0.02), node.get_clock().now().nanoseconds == sim_ns)[2], 10,
+                 what='the node on sim time')
+    _wait_matched(ros, probe, node)
+    sent = probe.trigger(sim_ns)                         # a sim-time trigger is not late
+    ros.wait_for(lambda: len(probe.times) == 1, what='the frame for the sim-time trigger')
+    capture = stamp_to_ns(probe.times[0].time_ref)
+    assert stamp_to_ns(probe.times[0].header.stamp) == sent
+    # on ROS (sim) time, not wall time: /clock stands still here, so the capture instant,
+    # mapped by its wall-clock age, lands a few ms before the (frozen) sim time
+    assert abs(capture - sent) < 5 * 10**9
+    probe.trigger(sim_ns - 2 * 10**9)                     # 2 s old in sim time: dropped
+    ros.wait_for(lambda: node.dropped == 1, what='the late sim-time trigger dropped')
+    assert len(probe.images) == 1
+
+
+def test_set_camera_info_writes_the_calibration_and_publishes_it(ros, tmp_path):
+    import shutil
+
+    from sensor_msgs.msg import CameraInfo
+    from sensor_msgs.srv import SetCameraInfo
+
+    from softshape_ros.vision.camera_info import default_calibration_path, load_calibration
+    from softshape_ros.vision.patterns import write_folder
+    shutil.copy(default_calibration_path('main'), tmp_path / 'main.yaml')
+    probe = Probe(ros)
+    node = _camera(ros, source=str(write_folder(tmp_path / 'frames', 12)),
+                   camera_info_url=f'file://{tmp_path}/${{NAME}}.yaml')
+    assert node.calibration_path == tmp_path / 'main.yaml'
+    _wait_matched(ros, probe, node)
+    client = probe.node.create_client(SetCameraInfo, '/camera_trigger/set_camera_info')
+    assert client.wait_for_service(timeout_sec=10)
+
+    def call(info):
+        fut = client.call_async(SetCameraInfo.Request(camera_info=info))
+        ros.wait_for(fut.done, what='set_camera_info answer')
+        return fut.result()
+
+    info = CameraInfo(width=640, height=480, distortion_model='plumb_bob',
+                      d=[0.1, -0.2, 0.0, 0.0, 0.0],
+                      k=[1234.0, 0, 321.0, 0, 1235.0, 241.0, 0, 0, 1],
+                      r=[1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0],
+                      p=[1234.0, 0, 321.0, 0, 0, 1235.0, 241.0, 0, 0, 0, 1.0, 0])
+    res = call(info)
+    assert res.success, res.status_message
+    saved = load_calibration(tmp_path / 'main.yaml')
+    assert saved.k[0] == 1234.0 and saved.d[:2] == (0.1, -0.2)
+    probe.trigger()
+    ros.wait_for(lambda: len(probe.infos) == 1, what='camera info after the commit')
+    assert probe.infos[0].k[0] == pytest.approx(1234.0 / 4)     # scaled to the 160x120 frames
+    bad = CameraInfo(width=640, height=480, k=[0.0] * 9, r=info.r, p=info.p)
+    res = call(bad)
+    assert not res.success and 'focal lengths' in res.status_message
+    assert load_calibration(tmp_path / 'main.yaml') == saved        # the good file is kept

@@ -7,50 +7,11 @@ import numpy as np
 import pytest
 from rclpy.parameter import Parameter
 
-from softshape_ros.nodes.collector import CommandPlan, SessionError, load_pressure_list
-
-LIMITS = [150000.0] * 6
-
-
-def test_pressure_list_loads_yaml_and_csv_and_rejects_bad_rows(tmp_path):
-    y = tmp_path / 'p.yaml'
-    y.write_text('pressures_pa:\n  - [0, 1000, 2000, 0, 0, 0]\n  - [5e+4, 0, 0, 0, 0, 1]\n')
-    assert load_pressure_list(y, LIMITS).tolist() == [[0, 1000, 2000, 0, 0, 0],
-                                                      [50000, 0, 0, 0, 0, 1]]
-    c = tmp_path / 'p.csv'
-    c.write_text('# six chambers, Pa\n1,2,3,4,5,6\n')
-    assert load_pressure_list(c, LIMITS).tolist() == [[1, 2, 3, 4, 5, 6]]
-    for text, match in [('pressures_pa: [[1, 2, 3]]', 'row 0: .*needs 6'),
-                        ('pressures_pa: [[0, 0, 0, 0, 0, -1]]', 'negative'),
-                        ('pressures_pa: [[0, 0, 0, 0, 0, .nan]]', 'non-finite'),
-                        ('pressures_pa: [[0, 0, 0, 0, 0, 2.0e+5]]', 'exceed their limits'),
-                        ('pressures_pa: []', 'empty'), ('foo: 1', 'pressures_pa')]:
-        y.write_text(text)
-        with pytest.raises(SessionError, match=match):
-            load_pressure_list(y, LIMITS)
-    with pytest.raises(SessionError, match='cannot read'):
-        load_pressure_list(tmp_path / 'none.yaml', LIMITS)
-
-
-def test_random_plan_is_seeded_uniform_within_limits():
-    first = CommandPlan(LIMITS, seed=3, max_fraction=0.5).next()
-    p1 = CommandPlan(LIMITS, seed=3, max_fraction=0.5)
-    p2 = CommandPlan(LIMITS, seed=3, max_fraction=0.5)
-    s1 = np.array([p1.next() for _ in range(400)])
-    s2 = np.array([p2.next() for _ in range(400)])
-    assert np.array_equal(s1, s2) and np.array_equal(first, s1[0])
-    assert s1.min() >= 0 and s1.max() <= 75000.0
-    assert s1.mean() == pytest.approx(37500.0, rel=0.1)       # uniform, not a constant
-    replay = CommandPlan(LIMITS, replay=np.zeros((1, 6)))
-    replay.next()
-    with pytest.raises(SessionError, match='only 1 rows'):
-        replay.next()
-
 
 class Responder:
     """A bridge stand-in: first-order regulators at 100 Hz, optionally stuck at a fraction."""
 
-    def __init__(self, ros, gain=1.0, reverse=False):
+    def __init__(self, ros, gain=1.0, reverse=False, sim_time=False):
         from sensor_msgs.msg import JointState
         from std_msgs.msg import Float64MultiArray, Header, String
 
@@ -59,7 +20,9 @@ class Responder:
         from softshape_ros.nodes.common import LATCHED_QOS, RELIABLE_QOS, stamp_to_ns
         cfg = load_rig_config()
         t = cfg.topics
-        self.node = ros.node('responder')
+        import rclpy
+        self.node = ros.add(rclpy.create_node(
+            'responder', parameter_overrides=[Parameter('use_sim_time', value=sim_time)]))
         self.reg = FirstOrderRegulator(0.01)
         self.lock = threading.Lock()
         self.commands, self.triggers, self.samples, self.scenes = [], [], [], []
@@ -224,3 +187,30 @@ def test_measured_pressures_are_matched_by_chamber_name(ros, tmp_path):
     col = _collector(ros, session=str(_session(tmp_path, 1, 2)))   # unmatched: never settles
     ros.wait_for(col.done.is_set, timeout=30, what='session done')
     assert col.unsettled == 0 and col.samples == 3       # reordered by name, so it settles
+
+
+@pytest.mark.ros
+def test_under_sim_time_samples_settle_on_the_clock_topic(ros, tmp_path):
+    """Stamps on /clock time throughout: commands settle against sim-time measurements."""
+    from rclpy.clock import Clock as RclClock, ClockType
+    from rosgraph_msgs.msg import Clock
+
+    from softshape_ros.nodes.common import ns_to_stamp
+    sim = {'ns': 2_000 * 10**9}                           # far from wall time
+    clock_node = ros.node('sim_clock')
+    clock_pub = clock_node.create_publisher(Clock, '/clock', 10)
+
+    def advance():                                        # sim time at wall rate
+        sim['ns'] += 5_000_000
+        clock_pub.publish(Clock(clock=ns_to_stamp(sim['ns'])))
+    clock_node.create_timer(0.005, advance, clock=RclClock(clock_type=ClockType.STEADY_TIME))
+    resp = Responder(ros, sim_time=True)
+    col = _collector(ros, session=str(_session(tmp_path, 1, 3)), use_sim_time=True,
+                     settle_timeout_s=2.0)
+    ros.wait_for(col.done.is_set, timeout=30, what='session done')
+    ros.wait_for(lambda: len(resp.samples) == 4, what='records')
+    assert col.state == 'done'
+    assert [s['settled'] for s in resp.samples] == [True] * 4
+    stamps = [s['stamp_ns'] for s in resp.samples]
+    assert all(abs(s - sim['ns']) < 60 * 10**9 for s in stamps), stamps   # sim time, not wall
+    assert stamps == sorted(stamps) and resp.triggers == stamps

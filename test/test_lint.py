@@ -5,7 +5,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-PATHS = [str(ROOT / p) for p in ('softshape_ros', 'test', 'benchmarks', 'setup.py')
+PATHS = [str(ROOT / p) for p in ('softshape_ros', 'test', 'benchmarks', 'launch', 'setup.py')
          if (ROOT / p).exists()]
 
 

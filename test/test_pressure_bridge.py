@@ -2,7 +2,8 @@
 The pressure_bridge node over DDS against a virtual Due on a real pty, faults included.
 
 Proof comes from the emulator's own log of applied set-points: what reached the "hardware"
-is compared with what was commanded, clamped to the limits.
+is compared with what was commanded, clamped to the limits. The bridge is a lifecycle node:
+the tests drive it through its transitions as a launch file or ``ros2 lifecycle`` would.
 """
 
 import math
@@ -10,6 +11,7 @@ import time
 
 import numpy as np
 import pytest
+from lifecycle_msgs.msg import Transition
 
 from softshape_ros.config import load_rig_config
 from softshape_ros.hardware.virtual_due import VirtualDue
@@ -40,7 +42,9 @@ class Client:
         from diagnostic_msgs.msg import DiagnosticArray
         from sensor_msgs.msg import JointState
         from std_msgs.msg import Float64MultiArray
-        from std_srvs.srv import SetBool, Trigger
+        from lifecycle_msgs.srv import ChangeState
+        from rcl_interfaces.srv import SetParameters
+        from std_srvs.srv import Trigger
 
         from softshape_ros.nodes.common import RELIABLE_QOS
         self.ros = ros
@@ -53,10 +57,28 @@ class Client:
         self.node.create_subscription(JointState, CFG.topics.pressure_measured,
                                       self.measured.append, RELIABLE_QOS)
         self.node.create_subscription(DiagnosticArray, CFG.topics.diagnostics,
-                                      self.diags.append, 10)
+                                      self._on_diag, 10)
         self.vent = self.node.create_client(Trigger, '/pressure_bridge/vent')
-        self.enable = self.node.create_client(SetBool, '/pressure_bridge/enable')
-        self.Trigger, self.SetBool = Trigger, SetBool
+        self.change_state = self.node.create_client(ChangeState, '/pressure_bridge/change_state')
+        self.set_params = self.node.create_client(SetParameters,
+                                                  '/pressure_bridge/set_parameters')
+        self.Trigger, self.ChangeState, self.SetParameters = Trigger, ChangeState, SetParameters
+
+    def _on_diag(self, msg):
+        self.diags.extend(s for s in msg.status if s.name == 'pressure_bridge: Due link')
+
+    def transition(self, transition_id):
+        """Ask for a lifecycle transition over the service (what ``ros2 lifecycle set`` does)."""
+        req = self.ChangeState.Request()
+        req.transition.id = transition_id
+        return self.call(self.change_state, req).success
+
+    def set_param(self, name, value):
+        """Set one parameter over the service (what ``ros2 param set`` does)."""
+        from rclpy.parameter import Parameter
+        req = self.SetParameters.Request(parameters=[Parameter(name, value=value)
+                                                     .to_parameter_msg()])
+        return self.call(self.set_params, req).results[0]
 
     def wait_graph(self):
         self.ros.wait_for(lambda: self.pub.get_subscription_count() > 0, 20, what='bridge sub')
@@ -71,21 +93,26 @@ class Client:
         return fut.result()
 
     def last_diag(self):
-        return self.diags[-1].status[0] if self.diags else None
+        return self.diags[-1] if self.diags else None
 
 
-def start_bridge(ros, vd, **params):
+def start_bridge(ros, vd, activate=True, **params):
     from rclpy.parameter import Parameter
 
     from softshape_ros.nodes.pressure_bridge import PressureBridge
     # The virtual Due runs as a thread of this test process, which a busy machine can leave
     # unscheduled for 1-2 s: link timeout and firmware watchdog leave room for that.
-    p = {'port': vd.path, 'max_pressure_pa': PARAM_LIMITS, 'watchdog_timeout_s': 30.0,
-         'firmware_watchdog_s': 3.0, 'link_timeout_s': 3.0, 'diagnostics_period_s': 0.2}
+    p = {'port': vd.path if vd is not None else '', 'max_pressure_pa': PARAM_LIMITS,
+         'watchdog_timeout_s': 30.0, 'firmware_watchdog_s': 3.0, 'link_timeout_s': 3.0,
+         'diagnostic_updater.period': 0.2}
     p.update(params)
     node = ros.add(PressureBridge(parameter_overrides=[Parameter(k, value=v)
                                                        for k, v in p.items()]))
-    ros.wait_for(lambda: node.link.connected, 10, what='link up')
+    if activate:
+        from rclpy.lifecycle import TransitionCallbackReturn
+        assert node.trigger_configure() == TransitionCallbackReturn.SUCCESS
+        assert node.trigger_activate() == TransitionCallbackReturn.SUCCESS
+        ros.wait_for(lambda: node.link.connected, 10, what='link up')
     return node
 
 
@@ -97,7 +124,7 @@ def expected(values):
     return tuple(int(round(x)) for x in np.minimum(values, LIMITS))
 
 
-def test_tracks_commands_rejects_bad_ones_and_serves_vent_and_enable(ros, vdue):
+def test_tracks_commands_rejects_bad_ones_and_serves_vent(ros, vdue):
     node = start_bridge(ros, vdue)
     c = Client(ros)
     c.wait_graph()
@@ -157,24 +184,6 @@ def test_tracks_commands_rejects_bad_ones_and_serves_vent_and_enable(ros, vdue):
     assert vdue.applied()[-1].setpoints_pa == (0,) * 6
     assert vdue.applied()[-1].reason == 'vent'
 
-    # ~/enable false: vented, and commands are refused until enabled again
-    c.command(cmd)
-    ros.wait_for(lambda: vdue.applied()[-1].setpoints_pa == tuple(cmd), 5, what='command')
-    resp = c.call(c.enable, c.SetBool.Request(data=False))
-    assert resp.success and vdue.applied()[-1].setpoints_pa == (0,) * 6
-    n = len(vdue.applied())
-    c.command(cmd)
-    ros.wait_for(lambda: 'disabled' in node.last_reject, 5, what='disabled rejection')
-    assert len(vdue.applied()) == n
-    rejected_before_reenable = node.counts['rejected']
-    assert c.call(c.enable, c.SetBool.Request(data=True)).success
-    # Resend until applied: on a loaded machine the link may be reconnecting for a moment,
-    # and a command sent then is (rightly) not applied; it must never be refused as disabled.
-    ros.wait_for(lambda: (c.command([1000] * 6), time.sleep(0.1),
-                          vdue.applied()[-1].setpoints_pa == (1000,) * 6)[2], 5,
-                 what='re-enabled')
-    assert node.counts['rejected'] == rejected_before_reenable
-
 
 def test_watchdog_vents_when_commands_stop(ros, vdue):
     node = start_bridge(ros, vdue, watchdog_timeout_s=0.5)
@@ -191,7 +200,7 @@ def test_watchdog_vents_when_commands_stop(ros, vdue):
 
 
 def test_faults_never_let_anything_but_commanded_values_through(ros, vdue):
-    node = start_bridge(ros, vdue, diagnostics_period_s=0.1)
+    node = start_bridge(ros, vdue, **{'diagnostic_updater.period': 0.1})
     c = Client(ros)
     c.wait_graph()
     rng = np.random.default_rng(3)
@@ -261,34 +270,144 @@ def test_faults_never_let_anything_but_commanded_values_through(ros, vdue):
     assert node.link.counters['connects'] >= 3
 
 
-def test_starts_without_a_due_reports_error_and_connects_when_plugged_in(ros, tmp_path):
-    from rclpy.parameter import Parameter
-
-    from softshape_ros.nodes.pressure_bridge import PressureBridge
+def test_configure_fails_without_a_due_and_succeeds_once_plugged_in(ros, tmp_path):
+    from rclpy.lifecycle import TransitionCallbackReturn
     link = tmp_path / 'ttyDUE'
-    node = ros.add(PressureBridge(parameter_overrides=[
-        Parameter('port', value=str(link)), Parameter('diagnostics_period_s', value=0.1),
-        Parameter('link_timeout_s', value=3.0),           # busy CI: see start_bridge
-        Parameter('firmware_watchdog_s', value=3.0)]))
+    node = start_bridge(ros, None, activate=False, port=str(link), connect_timeout_s=0.5,
+                        max_pressure_pa=list(CFG.max_pressures_pa),
+                        **{'diagnostic_updater.period': 0.1})
     c = Client(ros)
+    c.wait_graph()
+    c.command([1000] * 6)
+    ros.wait_for(lambda: 'not active' in node.last_reject, 5, what='refused while unconfigured')
+    assert node.trigger_configure() == TransitionCallbackReturn.FAILURE
+    assert node.link is None and node.lifecycle == 'unconfigured'
     ros.wait_for(lambda: c.last_diag() is not None and c.last_diag().level == b'\x02', 10,
                  what='diagnostics ERROR without a Due')
     assert 'cannot open' in c.last_diag().message
-    c.wait_graph()
-    c.command([1000] * 6)
-    ros.wait_for(lambda: node.counts['not_applied'] == 1, 5, what='command refused')
     with VirtualDue(CFG.max_pressures_pa, link=link, seed=2) as vd:
-        ros.wait_for(lambda: node.link.connected, 10, what='connect after plug-in')
-        ros.wait_for(lambda: c.last_diag().level == b'\x00', 5, what='diagnostics OK')
-        time.sleep(0.2)
+        assert c.transition(Transition.TRANSITION_CONFIGURE)
+        assert c.transition(Transition.TRANSITION_ACTIVATE)
+        # connected; WARN, not OK: the command refused while unconfigured is still reported
+        ros.wait_for(lambda: c.last_diag().message.startswith('connected'), 5,
+                     what='diagnostics: connected')
+        assert c.last_diag().level == b'\x01'
         reasons = {a.reason for a in vd.applied()}
         assert reasons == {'vent'}, reasons                  # the old command never arrives
         ros.wait_for(lambda: (c.command([2000] * 6), time.sleep(0.1),
                               vd.applied()[-1].setpoints_pa == (2000,) * 6)[2], 5, what='fresh')
         assert all(a.setpoints_pa in ((0,) * 6, (2000,) * 6) for a in vd.applied())
-        node.on_shutdown()
+        node.on_shutdown()                   # what run_node calls on SIGINT: the shutdown path
+        assert node.lifecycle == 'finalized' and node.link is None
         # The host vents; if a stall had the link down at that moment, the firmware watchdog
         # (3 s here) vents instead: either way the Due ends at zero.
         ros.wait_for(lambda: vd.applied()[-1].reason in ('vent', 'watchdog'), 5,
                      what='vented after shutdown')
         assert vd.applied()[-1].setpoints_pa == (0,) * 6
+
+
+def test_lifecycle_transitions_vent_at_the_due(ros, vdue):
+    node = start_bridge(ros, vdue, activate=False)
+    c = Client(ros)
+    c.wait_graph()
+    assert node.link is None and vdue.applied() == []           # unconfigured: port closed
+    assert c.transition(Transition.TRANSITION_CONFIGURE)
+    assert node.link.connected and vdue.applied()[-1].reason == 'vent'   # handshake vents
+    n = len(vdue.applied())
+    c.command([10000] * 6)                                     # inactive: refused
+    ros.wait_for(lambda: 'not active' in node.last_reject, 5, what='refused while inactive')
+    assert len(vdue.applied()) == n
+
+    def hold(value):
+        ros.wait_for(lambda: (c.command([value] * 6), time.sleep(0.05),
+                              vdue.applied()[-1].setpoints_pa == (value,) * 6)[2], 5,
+                     what=f'{value} Pa applied')
+
+    assert c.transition(Transition.TRANSITION_ACTIVATE)
+    hold(10000)
+    assert c.transition(Transition.TRANSITION_DEACTIVATE)     # deactivate vents
+    assert vdue.applied()[-1].setpoints_pa == (0,) * 6 and vdue.applied()[-1].reason == 'vent'
+    rejected = node.counts['rejected']
+    c.command([20000] * 6)
+    ros.wait_for(lambda: node.counts['rejected'] > rejected, 5, what='refused after deactivate')
+    assert vdue.applied()[-1].setpoints_pa == (0,) * 6
+    assert c.transition(Transition.TRANSITION_CLEANUP)        # cleanup closes the port
+    assert node.link is None
+    assert c.transition(Transition.TRANSITION_CONFIGURE)      # and configure opens it again
+    assert c.transition(Transition.TRANSITION_ACTIVATE)
+    hold(30000)
+    t_shutdown = time.monotonic()
+    assert c.transition(Transition.TRANSITION_ACTIVE_SHUTDOWN)
+    vent = vdue.applied()[-1]
+    assert vent.setpoints_pa == (0,) * 6 and vent.reason == 'vent' and vent.t >= t_shutdown
+    assert node.lifecycle == 'finalized' and node.link is None
+
+
+def test_limits_may_be_lowered_at_run_time_and_a_raise_is_refused(ros, vdue):
+    node = start_bridge(ros, vdue)
+    c = Client(ros)
+    c.wait_graph()
+    cmd = [70000.0, 60000.0, 50000.0, 40000.0, 30000.0, 20000.0]
+    c.command(cmd)
+    ros.wait_for(lambda: vdue.applied()[-1].setpoints_pa == expected(cmd), 5, what='command')
+    lowered = [50000.0] * 6
+    result = c.set_param('max_pressure_pa', lowered)
+    assert result.successful, result.reason
+    # the Due is told: it clamps the set-point it holds to the new limits at once
+    ros.wait_for(lambda: vdue.applied()[-1].reason == 'config', 5, what='limits at the Due')
+    assert vdue.applied()[-1].setpoints_pa == (50000, 50000, 50000, 40000, 30000, 20000)
+    c.command([1e9] * 6)
+    ros.wait_for(lambda: vdue.applied()[-1].setpoints_pa == (50000,) * 6, 5,
+                 what='command clamped to the lowered limits')
+    # integers, as `ros2 param set` types [40000, ...], are taken as the float array they mean
+    result = c.set_param('max_pressure_pa', [40000] * 6)
+    assert result.successful, result.reason
+    assert node.params.max_pressure_pa == [40000.0] * 6
+    # one number, as in `ros2 param set /pressure_bridge max_pressure_pa 35000`: every chamber
+    result = c.set_param('max_pressure_pa', 35000)
+    assert result.successful, result.reason
+    assert node.params.max_pressure_pa == [35000.0] * 6
+    # raising is refused with the reason, and nothing changes
+    result = c.set_param('max_pressure_pa', [150000.0] * 6)
+    assert not result.successful
+    assert 'may only be lowered at run time: chamber 0 from 35000 to 150000' in result.reason
+    result = c.set_param('max_pressure_pa', [1000.0] * 5)
+    assert not result.successful and 'needs 6 values' in result.reason
+    result = c.set_param('port', '/dev/null')
+    assert not result.successful and 'read-only' in result.reason
+    assert node.limits == [35000.0] * 6 and node.params.port == vdue.path
+    c.command([1e9] * 6)
+    ros.wait_for(lambda: vdue.applied()[-1].setpoints_pa == (35000,) * 6, 5,
+                 what='still clamped to the lowered limits')
+
+
+def test_sim_time_stamps_follow_clock_and_the_watchdog_runs_on_steady_time(ros, vdue):
+    from rosgraph_msgs.msg import Clock
+
+    from softshape_ros.nodes.common import ns_to_stamp
+    sim_ns = 1_000 * 10**9                                 # far from wall time
+    clock_node = ros.node('sim_clock')
+    pub = clock_node.create_publisher(Clock, '/clock', 10)
+    node = start_bridge(ros, vdue, activate=False, watchdog_timeout_s=0.5, use_sim_time=True)
+    ros.wait_for(lambda: (pub.publish(Clock(clock=ns_to_stamp(sim_ns))), time.sleep(0.02),
+                          node.get_clock().now().nanoseconds == sim_ns)[2], 10,
+                 what='the node on sim time')
+    assert c_configure(node)
+    c = Client(ros)
+    c.wait_graph()
+    c.command([30000] * 6)
+    ros.wait_for(lambda: vdue.applied()[-1].setpoints_pa == (30000,) * 6, 5, what='command')
+    t_cmd = vdue.applied()[-1].t
+    # /clock stands still from here: a watchdog on the node clock would never fire
+    ros.wait_for(lambda: vdue.applied()[-1].setpoints_pa == (0,) * 6, 5, what='watchdog vent')
+    assert vdue.applied()[-1].t - t_cmd >= 0.5 and node.counts['watchdog_vents'] == 1
+    ros.wait_for(lambda: len(c.measured) >= 5, 5, what='measured pressures')
+    stamps = [m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec for m in c.measured[-5:]]
+    assert all(abs(s - sim_ns * 1e-9) < 5.0 for s in stamps), stamps    # sim time, not wall
+    assert all(m.header.frame_id == '' for m in c.measured)
+
+
+def c_configure(node):
+    from rclpy.lifecycle import TransitionCallbackReturn
+    return (node.trigger_configure() == TransitionCallbackReturn.SUCCESS
+            and node.trigger_activate() == TransitionCallbackReturn.SUCCESS)

@@ -1,8 +1,10 @@
 """
 Shutdown vents: the pressure_bridge process against a virtual Due, stopped by a signal.
 
-SIGINT and SIGTERM: the node vents, then closes (exit 0). SIGKILL leaves no chance to
-vent, so the firmware's own watchdog must do it: the emulator's log shows which one did.
+SIGINT and SIGTERM: the node takes the lifecycle shutdown transition, which vents, then
+closes (exit 0). SIGKILL leaves no chance to vent, so the firmware's own watchdog must do
+it: the emulator's log shows which one did. The test configures and activates the node over
+its lifecycle services, as the physical rig's launch file does.
 """
 
 import signal
@@ -19,9 +21,17 @@ pytestmark = pytest.mark.ros
 CFG = load_rig_config()
 
 
+def out_of(proc):
+    """Return what a failed bridge process printed (it is killed first)."""
+    proc.kill()
+    return proc.communicate()[0]
+
+
 @pytest.mark.parametrize('sig, reason', [(signal.SIGINT, 'vent'), (signal.SIGTERM, 'vent'),
                                          (signal.SIGKILL, 'watchdog')])
 def test_stopping_the_node_vents(sig, reason, ros, tmp_path):
+    from lifecycle_msgs.msg import Transition
+    from lifecycle_msgs.srv import ChangeState
     from std_msgs.msg import Float64MultiArray
 
     from softshape_ros.nodes.common import RELIABLE_QOS
@@ -35,6 +45,14 @@ def test_stopping_the_node_vents(sig, reason, ros, tmp_path):
             pub = node.create_publisher(Float64MultiArray, CFG.topics.pressure_command,
                                         RELIABLE_QOS)
             ros.wait_for(lambda: pub.get_subscription_count() > 0, 60, what='bridge in graph')
+            change = node.create_client(ChangeState, '/pressure_bridge/change_state')
+            assert change.wait_for_service(timeout_sec=30)
+            for tid in (Transition.TRANSITION_CONFIGURE, Transition.TRANSITION_ACTIVATE):
+                req = ChangeState.Request()
+                req.transition.id = tid
+                fut = change.call_async(req)
+                ros.wait_for(fut.done, 30, what=f'transition {tid}')
+                assert fut.result().success, out_of(proc)
             cmd = [40000.0, 0, 20000, 0, 10000, 5000]
             deadline = time.monotonic() + 20
             while time.monotonic() < deadline:      # the link may still be handshaking

@@ -93,7 +93,7 @@ class RigClient:
     def _on_diag(self, msg):
         for st in msg.status:
             level = st.level[0] if isinstance(st.level, (bytes, bytearray)) else int(st.level)
-            if st.name == 'collector' and level == 2 and 'failed' in st.message:
+            if st.name.endswith(': session') and level == 2 and 'failed' in st.message:
                 self.collector_failed = st.message
             if 'inference' in st.name:
                 self.inference_state = st.message

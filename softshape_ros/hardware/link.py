@@ -12,6 +12,7 @@ No rclpy here: the ``pressure_bridge`` node is a thin adapter over it.
 from __future__ import annotations
 
 import collections
+import logging
 import statistics
 import threading
 import time
@@ -25,6 +26,7 @@ from softshape_ros.hardware import protocol as P
 from softshape_ros.pressure import N_CHAMBERS
 
 _U32 = 1 << 32
+_log = logging.getLogger(__name__)
 
 
 class LinkDown(RuntimeError):
@@ -164,6 +166,27 @@ class DueLink:
         """Ask the firmware to vent all chambers to zero (acknowledged and retried)."""
         return self._send(P.Vent)
 
+    def lower_limits(self, limits_pa) -> int | None:
+        """
+        Lower the per-chamber limits at run time (never raise them); tell the firmware.
+
+        The host clamps to the new limits at once; when connected, a CONFIG frame carries
+        them to the Due, which clamps its current set-point too. Returns that frame's
+        sequence number (None when the link is down: the next handshake sends them).
+        """
+        new = [float(x) for x in limits_pa]
+        if len(new) != N_CHAMBERS or not all(np.isfinite(new)) or min(new) <= 0:
+            raise ValueError(f'need {N_CHAMBERS} positive limits, got {limits_pa}')
+        raised = [i for i, (a, b) in enumerate(zip(new, self.host_limits)) if a > b]
+        if raised:
+            raise ValueError(f'limits may only be lowered at run time (chambers {raised})')
+        self.host_limits = new
+        self.limits_pa = [min(a, b) for a, b in zip(new, self.limits_pa)]
+        if not self.connected:
+            return None
+        return self._send(lambda s: P.Config(s, self.state_rate_hz, self.fw_watchdog_ms,
+                                             tuple(int(x) for x in self.limits_pa)))
+
     def wait_ack(self, seq: int, timeout: float) -> bool:
         """Block until the frame ``seq`` is acknowledged (True) or ``timeout`` passes."""
         deadline = time.monotonic() + timeout
@@ -206,7 +229,7 @@ class DueLink:
         try:
             self._on_event(level, text)
         except Exception as exc:  # noqa: BLE001 - report and keep the link alive
-            print(f'due_link: on_event failed: {exc!r} ({level}: {text})', flush=True)
+            _log.error('on_event failed: %r (%s: %s)', exc, level, text)
 
     def on_state(self, m: Measurement) -> None:
         try:

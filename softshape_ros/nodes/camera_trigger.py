@@ -11,20 +11,20 @@ and never a frame under a stamp it does not belong to.
 
 from __future__ import annotations
 
-import time
-
-from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image, TimeReference
+from sensor_msgs.srv import SetCameraInfo
 from std_msgs.msg import Header
 
-from softshape_ros.nodes.common import (ERROR, IMAGE_QOS, OK, RELIABLE_QOS, SENSOR_QOS, WARN,
-                                        declare_rig_config, diagnostic_status, main_wrapper,
-                                        ns_to_stamp, numpy_to_image, publish_diagnostics,
-                                        stamp_to_ns)
-from softshape_ros.vision.camera_info import (Calibration, CalibrationError,
-                                              default_calibration_path, load_calibration)
+from softshape_ros.nodes.clocks import ros_now_ns, steady_timer, wall_to_ros_ns
+from softshape_ros.nodes.common import (IMAGE_QOS, RELIABLE_QOS, SENSOR_QOS, declare_rig_config,
+                                        main_wrapper, ns_to_stamp, numpy_to_image, stamp_to_ns)
+from softshape_ros.nodes.diagnostics import (ERROR, OK, WARN, TriggeredRate, Updater, fill,
+                                             topic_frequency)
+from softshape_ros.nodes.parameters import Param, declare
+from softshape_ros.vision.camera_info import (Calibration, CalibrationError, load_calibration,
+                                              resolve_url, save_calibration)
 from softshape_ros.vision.capture import CaptureError, open_source
 from softshape_ros.vision.sync import RollingStats, SkewTracker
 
@@ -57,49 +57,64 @@ def time_reference_msg(stamp, capture_ns: int, camera: str, frame_id: str) -> Ti
     return msg
 
 
+def parameters(cfg) -> list[Param]:
+    """List what the camera node takes (choices and defaults from rig.yaml)."""
+    return [
+        Param('camera_name', 'main', 'which camera of rig.yaml this is',
+              choices=tuple(cfg.camera_names)),
+        Param('source', '/dev/video0', 'a device index (0), /dev/video*, a video file or an '
+              'image folder', dynamic=True),
+        Param('width', 0, 'device width, px (0 = driver default)', (0, 16384)),
+        Param('height', 0, 'device height, px (0 = driver default)', (0, 16384)),
+        Param('fps', 0.0, 'device rate; playback rate of files and folders (0 = own / 10)',
+              (0.0, 1000.0)),
+        Param('pixel_format', '', "device FOURCC, e.g. MJPG or YUYV ('' = driver default)"),
+        Param('camera_info_url', '', "calibration URL: file://, package://, ${NAME} ('' = "
+              'config/camera_info/<camera_name>.yaml)'),
+        Param('reliable_images', True, 'offer images reliably (best-effort viewers still '
+              'match); false: the plain sensor-data profile'),
+        Param('free_run', False, 'also publish at the camera rate (stamp = capture time)'),
+        Param('capture_timeout_s', 0.5, 'a trigger with no frame in this time gets none',
+              (0.01, 60.0), live=True),
+        Param('max_trigger_age_s', 0.5, 'older triggers (ROS time) are dropped, not answered '
+              'late', (0.0, 3600.0), live=True),
+        Param('reconnect_period_s', 1.0, 'retry a missing camera this often', (0.05, 3600.0)),
+        Param('max_capture_skew_s', -1.0, 'pair skew bound; < 0 = rig.yaml '
+              'collection.max_capture_skew_s', (-1.0, 10.0)),
+    ]
+
+
 class CameraTrigger(Node):
     """Trigger-driven camera publisher with reconnect, skew and latency diagnostics."""
 
     def __init__(self, **kwargs):
         super().__init__('camera_trigger', **kwargs)
         self.cfg = declare_rig_config(self)
-        par = self.declare_parameter
-        self.camera = par('camera_name', 'main').value
-        if self.camera not in self.cfg.cameras:
-            raise ValueError(f'camera_name {self.camera!r} is not in {self.cfg.source} '
-                             f'(cameras: {", ".join(self.cfg.camera_names)})')
-        self.source_spec = str(par('source', '/dev/video0').value)
-        self.width = int(par('width', 0).value)
-        self.height = int(par('height', 0).value)
-        self.fps = float(par('fps', 0.0).value)
-        self.pixel_format = str(par('pixel_format', '').value)
-        self.free_run = bool(par('free_run', False).value)
-        self.capture_timeout_s = float(par('capture_timeout_s', 0.5).value)
-        self.max_trigger_age_s = float(par('max_trigger_age_s', 0.5).value)
-        self.reconnect_period_s = float(par('reconnect_period_s', 1.0).value)
-        bound = float(par('max_capture_skew_s', -1.0).value)
+        self.params = p = declare(self, parameters(self.cfg))
+        self.camera = p.camera_name
+        self.source_spec = str(p.source)          # an index arrives as an integer
+        bound = p.max_capture_skew_s
         self.skew_bound_s = bound if bound >= 0 else self.cfg.collection.max_capture_skew_s
-        info_url = str(par('camera_info_url', '').value)
-        diag_period = float(par('diagnostics_period_s', 1.0).value)
 
         cam = self.cfg.cameras[self.camera]
         self.frame_id = cam.frame_id
-        path = info_url.removeprefix('file://') or str(default_calibration_path(self.camera))
         try:
-            self.calibration = load_calibration(path)
+            self.calibration_path = resolve_url(p.camera_info_url, self.camera)
+            self.calibration = load_calibration(self.calibration_path)
         except CalibrationError as exc:
             raise ValueError(f'camera_info_url: {exc}') from None
 
         topics = self.cfg.topics
-        qos = IMAGE_QOS if par('reliable_images', True).value else SENSOR_QOS
-        self.pub_image = self.create_publisher(
-            Image, topics.camera('camera_image', self.camera), qos)
+        qos = IMAGE_QOS if p.reliable_images else SENSOR_QOS
+        self.image_topic = topics.camera('camera_image', self.camera)
+        self.pub_image = self.create_publisher(Image, self.image_topic, qos)
         self.pub_info = self.create_publisher(
             CameraInfo, topics.camera('camera_info', self.camera), qos)
         self.pub_time = self.create_publisher(
             TimeReference, topics.camera('capture_time', self.camera), RELIABLE_QOS)
-        self.pub_diag = self.create_publisher(DiagnosticArray, topics.diagnostics, RELIABLE_QOS)
         self.create_subscription(Header, topics.trigger, self._on_trigger, RELIABLE_QOS)
+        # camera_calibration commits here; the name is camera_info_manager's
+        self.create_service(SetCameraInfo, '~/set_camera_info', self._on_set_camera_info)
 
         self.skew = SkewTracker(self.cfg.camera_names, self.skew_bound_s)
         for other in self.cfg.camera_names:
@@ -113,29 +128,38 @@ class CameraTrigger(Node):
         self.source = None
         self.error = ''
         self.frames = 0
+        self.triggers = 0
         self.dropped = 0
         self.reconnects = 0
         self.last_frame_size = None
+        self.diagnostics = Updater(self)
+        self.diagnostics.setHardwareID(self.source_spec)
+        self.diagnostics.add(f'{self.camera} camera', self._diagnose_camera)
+        if p.free_run:
+            rate = p.fps if p.fps > 0 else 30.0
+            self.image_rate = topic_frequency(self.diagnostics, self.image_topic, rate)
+        else:
+            self.image_rate = TriggeredRate(self.diagnostics, self.image_topic)
         self._open_source()
-        self.create_timer(max(0.05, self.reconnect_period_s), self._reconnect)
-        self.create_timer(max(0.05, diag_period), self._publish_diagnostics)
-        if self.free_run:
-            rate = self.fps if self.fps > 0 else 30.0
-            self.create_timer(1.0 / rate, self._free_run_tick)
+        steady_timer(self, p.reconnect_period_s, self._reconnect)
+        if p.free_run:
+            steady_timer(self, 1.0 / rate, self._free_run_tick)
         self.get_logger().info(
-            f'camera {self.camera}: source {self.source_spec!r}, calibration {path}, '
-            f'{"free-run + " if self.free_run else ""}trigger on {topics.trigger}')
+            f'camera {self.camera}: source {self.source_spec!r}, calibration '
+            f'{self.calibration_path}, {"free-run + " if p.free_run else ""}trigger on '
+            f'{topics.trigger}')
 
     # -- source management -------------------------------------------------------------
     def _open_source(self) -> bool:
+        p = self.params
         try:
-            self.source = open_source(self.source_spec, self.width, self.height, self.fps,
-                                      self.pixel_format)
+            self.source = open_source(self.source_spec, p.width, p.height, p.fps,
+                                      p.pixel_format)
         except CaptureError as exc:
             self.source = None
             if str(exc) != self.error:
                 self.get_logger().error(f'camera {self.camera}: {exc}; retrying every '
-                                        f'{self.reconnect_period_s:g} s')
+                                        f'{p.reconnect_period_s:g} s')
             self.error = str(exc)
             return False
         if self.error:
@@ -143,7 +167,7 @@ class CameraTrigger(Node):
             self.get_logger().info(f'camera {self.camera}: {self.source.description} '
                                    f'is back (reconnect {self.reconnects})')
         self.error = ''
-        self._publish_diagnostics()
+        self.diagnostics.force_update()
         return True
 
     def _lose_source(self, exc: Exception) -> None:
@@ -155,57 +179,66 @@ class CameraTrigger(Node):
             except Exception:  # a dying device may fail to close; it is gone either way
                 pass
         self.source = None
-        self._publish_diagnostics()
+        self.diagnostics.force_update()
 
     def _reconnect(self) -> None:
         if self.source is None:
-            if self._open_source():
-                self._publish_diagnostics()
+            self._open_source()
 
     def _capture(self):
         if self.source is None:
             return None
         try:
-            return self.source.capture(self.capture_timeout_s)
+            return self.source.capture(self.params.capture_timeout_s)
         except CaptureError as exc:
             self._lose_source(exc)
             return None
 
     # -- publishing ----------------------------------------------------------------------
-    def _publish_frame(self, frame, stamp) -> None:
+    def _publish_frame(self, frame, stamp, capture_ns: int) -> None:
         img = frame.image
         h, w = img.shape[:2]
         cal = self.calibration.scaled(w, h)
         self.last_frame_size = (w, h)
         self.pub_image.publish(numpy_to_image(img, stamp, self.frame_id, 'rgb8'))
         self.pub_info.publish(camera_info_msg(cal, stamp, self.frame_id))
-        self.pub_time.publish(time_reference_msg(stamp, frame.capture_ns, self.camera,
+        self.pub_time.publish(time_reference_msg(stamp, capture_ns, self.camera,
                                                  self.frame_id))
+        self.image_rate.tick()
         self.frames += 1
 
     def _on_trigger(self, msg: Header) -> None:
         trig_ns = stamp_to_ns(msg.stamp)
-        age = time.time_ns() - trig_ns
-        if age > self.max_trigger_age_s * 1e9:
-            self.dropped += 1
+        self.triggers += 1
+        age = ros_now_ns(self) - trig_ns          # both ROS time (sim time under use_sim_time)
+        max_age = self.params.max_trigger_age_s
+        if age > max_age * 1e9:
+            self._missed()
             self.get_logger().warning(
                 f'camera {self.camera}: trigger {trig_ns} arrived {age / 1e9:.3f} s late '
-                f'(> {self.max_trigger_age_s:g} s): no frame for it')
+                f'(> {max_age:g} s): no frame for it')
             return
         frame = self._capture()
         if frame is None:
-            self.dropped += 1
+            self._missed()
             return
-        self._publish_frame(frame, msg.stamp)
-        done = time.time_ns()
-        self.latency_capture.add((frame.capture_ns - trig_ns) / 1e9)
+        capture_ns = wall_to_ros_ns(self, frame.capture_ns)
+        self._publish_frame(frame, msg.stamp, capture_ns)
+        done = ros_now_ns(self)
+        self.latency_capture.add((capture_ns - trig_ns) / 1e9)
         self.latency_publish.add((done - trig_ns) / 1e9)
-        self._pair(self.camera, trig_ns, frame.capture_ns)
+        self._pair(self.camera, trig_ns, capture_ns)
+
+    def _missed(self) -> None:
+        self.dropped += 1
+        if isinstance(self.image_rate, TriggeredRate):
+            self.image_rate.miss()
 
     def _free_run_tick(self) -> None:
         frame = self._capture()
         if frame is not None:
-            self._publish_frame(frame, ns_to_stamp(frame.capture_ns))
+            capture_ns = wall_to_ros_ns(self, frame.capture_ns)
+            self._publish_frame(frame, ns_to_stamp(capture_ns), capture_ns)
 
     def _on_peer_time(self, camera: str, msg: TimeReference) -> None:
         self._pair(camera, stamp_to_ns(msg.header.stamp), stamp_to_ns(msg.time_ref))
@@ -217,11 +250,28 @@ class CameraTrigger(Node):
                 f'camera pair at stamp {stamp_ns}: capture skew {res[0] * 1e3:.1f} ms > '
                 f'{self.skew_bound_s * 1e3:g} ms: flagged (the dataset builder drops it)')
 
-    def _publish_diagnostics(self) -> None:
+    def _on_set_camera_info(self, request, response):
+        """Store a new calibration (camera_calibration's commit): write the YAML, use it."""
+        m = request.camera_info
+        cal = Calibration(self.camera, int(m.width), int(m.height), tuple(m.k), tuple(m.d),
+                          tuple(m.r), tuple(m.p), m.distortion_model or 'plumb_bob')
+        try:
+            path = save_calibration(cal, self.calibration_path)
+        except CalibrationError as exc:
+            response.success, response.status_message = False, str(exc)
+            self.get_logger().error(f'set_camera_info refused: {exc}')
+            return response
+        self.calibration = cal
+        response.success, response.status_message = True, f'calibration written to {path}'
+        self.get_logger().info(response.status_message)
+        return response
+
+    def _diagnose_camera(self, stat):
         skew = self.skew.stats.summary()
         values = {
-            'source': self.source_spec, 'frames': self.frames, 'dropped_triggers': self.dropped,
-            'reconnects': self.reconnects, 'frame_size': self.last_frame_size,
+            'source': self.source_spec, 'frames': self.frames, 'triggers': self.triggers,
+            'dropped_triggers': self.dropped, 'reconnects': self.reconnects,
+            'frame_size': self.last_frame_size, 'calibration': self.calibration_path,
             'trigger_to_capture_ms': self.latency_capture.summary(),
             'trigger_to_publish_ms': self.latency_publish.summary(),
             'pair_skew_ms': skew, 'pairs_over_bound': self.skew.flagged,
@@ -235,8 +285,7 @@ class CameraTrigger(Node):
                                     f'{self.skew_bound_s * 1e3:g} ms')
         else:
             level, message = OK, f'capturing from {self.source.description}'
-        publish_diagnostics(self, self.pub_diag, [diagnostic_status(
-            f'camera_trigger: {self.camera}', self.source_spec, level, message, values)])
+        return fill(stat, level, message, values)
 
     def on_shutdown(self) -> None:
         if self.source is not None:

@@ -14,6 +14,7 @@ from typing import Callable
 
 import numpy as np
 import rclpy
+import rclpy.logging
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.executors import (ExternalShutdownException, MultiThreadedExecutor,
@@ -26,6 +27,7 @@ from sensor_msgs.msg import Image
 
 from softshape_ros.config import RigConfig, load_rig_config
 from softshape_ros.transport import TransportProfileError, configure_transport
+from softshape_ros.nodes.parameters import Param, declare
 from softshape_ros.vision.image_msg import ENCODINGS, decode_image, stamp_ns
 
 #: The sensor-data profile (best effort, keep last 5), docs/design.md's choice for images.
@@ -48,9 +50,13 @@ OK, WARN, ERROR, STALE = (DiagnosticStatus.OK, DiagnosticStatus.WARN,
                           DiagnosticStatus.ERROR, DiagnosticStatus.STALE)
 
 
+#: Every node's first parameter: which rig.yaml to load.
+CONFIG_FILE = Param('config_file', '', "the rig config YAML ('' = the installed config/rig.yaml)")
+
+
 def declare_rig_config(node: Node) -> RigConfig:
     """Declare the ``config_file`` parameter ('' = the package's rig.yaml) and load it."""
-    path = node.declare_parameter('config_file', '').value
+    path = declare(node, [CONFIG_FILE]).config_file
     return load_rig_config(path or None)
 
 
@@ -138,7 +144,7 @@ def run_node(factory: Callable[[], Node], args=None, multithreaded: bool = False
     try:
         transport = configure_transport()
     except TransportProfileError as exc:
-        print(f'[softshape] fatal: {exc}', file=sys.stderr)
+        rclpy.logging.get_logger('softshape').fatal(str(exc))
         return 2
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     node = None
@@ -157,7 +163,7 @@ def run_node(factory: Callable[[], Node], args=None, multithreaded: bool = False
         pass
     except Exception as exc:  # a clear message, not a traceback wall, and a failing exit code
         name = node.get_name() if node is not None else 'softshape'
-        print(f'[{name}] fatal: {exc}', file=sys.stderr)
+        rclpy.logging.get_logger(name).fatal(str(exc))
         code = 1
     finally:
         if node is not None:
@@ -169,7 +175,7 @@ def run_node(factory: Callable[[], Node], args=None, multithreaded: bool = False
                 try:
                     hook()
                 except Exception as exc:
-                    print(f'[{node.get_name()}] shutdown hook failed: {exc}', file=sys.stderr)
+                    node.get_logger().error(f'shutdown hook failed: {exc}')
                     code = code or 1
             node.destroy_node()
         if rclpy.ok():

@@ -16,7 +16,6 @@ import time
 from collections import deque
 
 import numpy as np
-from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
 from sensor_msgs.msg import Image
 from std_msgs.msg import Float64MultiArray, String
@@ -26,10 +25,19 @@ from softshape_ros.model.serving import (InferenceCore, LatestSlot, PredictionEr
                                          to_hwc)
 from softshape_ros.scene import Scene, SceneError
 from softshape_ros.vision.preprocess import crop_for
-from softshape_ros.nodes.common import (ERROR, IMAGE_QOS, LATCHED_QOS, OK, RELIABLE_QOS,
-                                        SENSOR_QOS, WARN, declare_rig_config, diagnostic_status,
-                                        image_to_numpy, main_wrapper, numpy_to_image,
-                                        publish_diagnostics, stamp_to_ns)
+from softshape_ros.nodes.common import (IMAGE_QOS, LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS,
+                                        declare_rig_config, image_to_numpy, main_wrapper,
+                                        numpy_to_image, stamp_to_ns)
+from softshape_ros.nodes.diagnostics import ERROR, OK, WARN, Updater, fill
+from softshape_ros.nodes.parameters import Param, declare
+
+PARAMETERS = [
+    Param('model', '', 'checkpoint folder (model.safetensors + config.json); required'),
+    Param('threads', 1, 'torch CPU threads for the model', (1, 256)),
+    Param('overlay', True, 'also publish /softshape/predicted/{view}/overlay', live=True),
+    Param('reliable_images', True, 'camera subscriptions reliable (false for best-effort '
+          'cameras)'),
+]
 
 
 class InferenceNode(Node):
@@ -38,13 +46,11 @@ class InferenceNode(Node):
     def __init__(self, **kwargs):
         super().__init__('inference', **kwargs)
         self.cfg = declare_rig_config(self)
-        model_path = self.declare_parameter('model', '').value
-        threads = int(self.declare_parameter('threads', 1).value)
-        self.publish_overlay = bool(self.declare_parameter('overlay', True).value)
+        self.params = p = declare(self, PARAMETERS)
+        model_path, threads = p.model, p.threads
         # Camera images: reliable like camera_trigger/mock_hardware publish them (a best-effort
         # subscription would silently lose rest images under load); false for best-effort cameras.
-        image_qos = IMAGE_QOS if self.declare_parameter('reliable_images', True).value \
-            else SENSOR_QOS
+        image_qos = IMAGE_QOS if p.reliable_images else SENSOR_QOS
         if not model_path:
             raise ValueError('parameter "model" is empty: give a checkpoint '
                              '(ros2 run softshape_ros inference --ros-args -p model:=PATH)')
@@ -59,7 +65,6 @@ class InferenceNode(Node):
                          for v in self.core.views}
         self.pub_overlay = {v: self.create_publisher(Image, t.camera('predicted_overlay', v),
                                                      IMAGE_QOS) for v in self.core.views}
-        self.pub_diag = self.create_publisher(DiagnosticArray, t.diagnostics, RELIABLE_QOS)
         self.latest_frame: dict[str, np.ndarray] = {}
         self.rest_stamps: set[int] = set()
         self.seen_samples = False
@@ -81,7 +86,9 @@ class InferenceNode(Node):
         self.worker = threading.Thread(target=self.serve, name='inference-worker', daemon=True)
         self.running = True
         self.worker.start()
-        self.create_timer(1.0, self.report)
+        self.diagnostics = Updater(self)
+        self.diagnostics.setHardwareID(str(model_path))
+        self.diagnostics.add('model', self.report)
 
     # -- inputs ---------------------------------------------------------------------------
     def on_scene(self, msg: String) -> None:
@@ -177,14 +184,14 @@ class InferenceNode(Node):
             frame_id = self.cfg.cameras[v].frame_id
             self.pub_pred[v].publish(numpy_to_image(to_hwc(img), msg_stamp, frame_id))
             frame = self.latest_frame.get(v)
-            if self.publish_overlay and frame is not None:
+            if self.params.overlay and frame is not None:
                 crop = crop_for(self.cfg.cameras[v], frame.shape[1], frame.shape[0])
                 self.pub_overlay[v].publish(
                     numpy_to_image(overlay(frame, img, crop), msg_stamp, frame_id))
         self.counts['published'] += 1
         self.latency_ms.append((time.perf_counter() - t0) * 1e3)
 
-    def report(self) -> None:
+    def report(self, stat):
         lat = np.asarray(self.latency_ms) if self.latency_ms else np.zeros(1)
         level, message = OK, 'predicting'
         if not self.core.ready:
@@ -194,8 +201,7 @@ class InferenceNode(Node):
         values = dict(self.counts, superseded=self.slot.superseded,
                       latency_ms_median=f'{np.median(lat):.2f}',
                       latency_ms_p99=f'{np.percentile(lat, 99):.2f}', last_error=self.last_error)
-        publish_diagnostics(self, self.pub_diag, [
-            diagnostic_status('softshape: inference', 'model', level, message, values)])
+        return fill(stat, level, message, values)
 
     def on_shutdown(self) -> None:
         self.running = False

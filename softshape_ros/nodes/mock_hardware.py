@@ -18,20 +18,37 @@ import threading
 import time
 
 import numpy as np
-from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, JointState, TimeReference
 from std_msgs.msg import Float64MultiArray, Header, String
 
 from softshape_ros.pressure import CommandError, FirstOrderRegulator, check_command
 from softshape_ros.nodes.camera_trigger import camera_info_msg, time_reference_msg
-from softshape_ros.nodes.common import (ERROR, IMAGE_QOS, LATCHED_QOS, OK, RELIABLE_QOS,
-                                        SENSOR_QOS, WARN,
-                                        declare_rig_config, diagnostic_status, main_wrapper,
-                                        ns_to_stamp, numpy_to_image, publish_diagnostics)
+from softshape_ros.nodes.common import (IMAGE_QOS, LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS,
+                                        declare_rig_config, main_wrapper, ns_to_stamp,
+                                        numpy_to_image)
+from softshape_ros.nodes.diagnostics import ERROR, OK, WARN, Updater, fill, topic_frequency
+from softshape_ros.nodes.parameters import Param, declare
 from softshape_ros.scene import Scene, SceneError
 from softshape_ros.sim import SimRig, SolverError
 from softshape_ros.vision.camera_info import calibration_from_camera
+
+
+PARAMETERS = [
+    Param('tau_s', 0.05, 'regulator first-order time constant, s', (0.0, 60.0)),
+    Param('publish_rate_hz', 100.0, '/rig/pressure/measured rate', (0.1, 10000.0)),
+    Param('pressure_noise_pa', 0.0, 'Gaussian sensor noise on the measured pressures, Pa',
+          (0.0, 1e5)),
+    Param('image_noise_std', 0.0, 'Gaussian pixel noise (0-255 scale) on the images',
+          (0.0, 255.0)),
+    Param('seed', 0, 'noise seed', (0, 2**31 - 1)),
+    Param('command_timeout_s', 3.0, 'vent when no command came for this long (0 = off)',
+          (0.0, 3600.0)),
+    Param('max_pending_triggers', 8, 'triggers queued for the simulator beyond this are '
+          'dropped', (1, 10000)),
+    Param('reliable_images', True, 'as camera_trigger: offered reliable, best-effort viewers '
+          'match'),
+]
 
 
 class MockHardware(Node):
@@ -40,17 +57,12 @@ class MockHardware(Node):
     def __init__(self, **kwargs):
         super().__init__('mock_hardware', **kwargs)
         self.cfg = declare_rig_config(self)
-        par = self.declare_parameter
-        tau_s = float(par('tau_s', 0.05).value)
-        rate = float(par('publish_rate_hz', 100.0).value)
-        self.pressure_noise_pa = float(par('pressure_noise_pa', 0.0).value)
-        image_noise_std = float(par('image_noise_std', 0.0).value)
-        seed = int(par('seed', 0).value)
-        self.command_timeout_s = float(par('command_timeout_s', 3.0).value)
-        max_queue = int(par('max_pending_triggers', 8).value)
-        if rate <= 0 or tau_s < 0 or self.pressure_noise_pa < 0 or image_noise_std < 0:
-            raise ValueError('publish_rate_hz must be > 0 and tau_s, pressure_noise_pa, '
-                             'image_noise_std >= 0')
+        p = declare(self, PARAMETERS)
+        tau_s, rate = p.tau_s, p.publish_rate_hz
+        self.pressure_noise_pa = p.pressure_noise_pa
+        image_noise_std, seed = p.image_noise_std, p.seed
+        self.command_timeout_s = p.command_timeout_s
+        max_queue = p.max_pending_triggers
 
         self.limits = self.cfg.max_pressures_pa
         self.regulator = FirstOrderRegulator(tau_s, len(self.limits))
@@ -63,7 +75,7 @@ class MockHardware(Node):
 
         t = self.cfg.topics
         self.pub_measured = self.create_publisher(JointState, t.pressure_measured, RELIABLE_QOS)
-        qos = IMAGE_QOS if par('reliable_images', True).value else SENSOR_QOS
+        qos = IMAGE_QOS if p.reliable_images else SENSOR_QOS
         self.pub_image, self.pub_info, self.pub_time = {}, {}, {}
         for cam in self.cfg.camera_names:
             self.pub_image[cam] = self.create_publisher(
@@ -72,7 +84,6 @@ class MockHardware(Node):
                 CameraInfo, t.camera('camera_info', cam), qos)
             self.pub_time[cam] = self.create_publisher(
                 TimeReference, t.camera('capture_time', cam), RELIABLE_QOS)
-        self.pub_diag = self.create_publisher(DiagnosticArray, t.diagnostics, RELIABLE_QOS)
         self.create_subscription(Float64MultiArray, t.pressure_command, self._on_command,
                                  RELIABLE_QOS)
         self.create_subscription(String, t.scene, self._on_scene, LATCHED_QOS)
@@ -92,7 +103,11 @@ class MockHardware(Node):
         self.worker = threading.Thread(target=self._work, name='mock-cameras', daemon=True)
         self.worker.start()
         self.create_timer(1.0 / rate, self._tick)
-        self.create_timer(1.0, self._publish_diagnostics)
+        self.diagnostics = Updater(self)
+        self.diagnostics.setHardwareID('simulated')
+        self.diagnostics.add('pressure', self._diagnose_pressure)
+        self.diagnostics.add('cameras', self._diagnose_cameras)
+        self.measured_rate = topic_frequency(self.diagnostics, t.pressure_measured, rate)
         self.get_logger().info(f'simulated rig: regulators tau {tau_s:g} s, measured at '
                                f'{rate:g} Hz, cameras {", ".join(self.cfg.camera_names)}')
 
@@ -128,6 +143,7 @@ class MockHardware(Node):
         msg.name = list(self.cfg.chamber_names)
         msg.effort = [float(v) for v in p]
         self.pub_measured.publish(msg)
+        self.measured_rate.tick()
         return p
 
     def _tick(self) -> None:
@@ -202,28 +218,24 @@ class MockHardware(Node):
                 continue
             self.frames += 1
 
-    def _publish_diagnostics(self) -> None:
+    def _diagnose_pressure(self, stat):
+        bad = self.rejected or self.clamped
+        return fill(stat, WARN if bad else OK, self.last_error if self.rejected else 'regulating',
+                    {'measured_pa': [round(float(v)) for v in self.regulator.pressure],
+                     'rejected_commands': self.rejected, 'clamped_commands': self.clamped,
+                     'watchdog_vents': self.watchdog_vents}, 'simulated regulators')
+
+    def _diagnose_cameras(self, stat):
         if self.solver_errors or self.dropped:
             level = ERROR
         elif self.rejected or self.clamped:
             level = WARN
         else:
             level = OK
-        p = self.regulator.pressure
-        publish_diagnostics(self, self.pub_diag, [
-            diagnostic_status('mock_hardware: pressure', 'simulated regulators',
-                              WARN if self.rejected or self.clamped else OK,
-                              self.last_error if self.rejected else 'regulating',
-                              {'measured_pa': [round(float(v)) for v in p],
-                               'rejected_commands': self.rejected,
-                               'clamped_commands': self.clamped,
-                               'watchdog_vents': self.watchdog_vents}),
-            diagnostic_status('mock_hardware: cameras', 'SimRig', level,
-                              self.last_error if level == ERROR else 'simulating',
-                              {'frames': self.frames, 'solver_errors': self.solver_errors,
-                               'dropped_triggers': self.dropped,
-                               'scene': self.scene.id if self.scene else None}),
-        ])
+        return fill(stat, level, self.last_error if level == ERROR else 'simulating',
+                    {'frames': self.frames, 'solver_errors': self.solver_errors,
+                     'dropped_triggers': self.dropped,
+                     'scene': self.scene.id if self.scene else None}, 'SimRig')
 
     def on_shutdown(self) -> None:
         self._stop.set()

@@ -22,12 +22,35 @@ from rclpy.qos import (DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSPro
 from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness,
                                 QosReliability, QosTime)
 from std_srvs.srv import Trigger
-from diagnostic_msgs.msg import DiagnosticArray
 
 from softshape_ros.data.bag_writer import BagError, BagWriter, TopicSpec
 from softshape_ros.data.recording import Recording
-from softshape_ros.nodes.common import (ERROR, OK, WARN, declare_rig_config,
-                                        diagnostic_status, main_wrapper, publish_diagnostics)
+from softshape_ros.nodes.clocks import steady_timer
+from softshape_ros.nodes.common import declare_rig_config, main_wrapper
+from softshape_ros.nodes.diagnostics import ERROR, OK, WARN, Updater, fill
+from softshape_ros.nodes.parameters import Param, declare
+
+PARAMETERS = [
+    Param('output', '', "bag directory ('' = ./rosbag2_YYYY_MM_DD-HH_MM_SS)"),
+    Param('storage', 'mcap', 'storage plugin: mcap or sqlite3'),
+    Param('compression', 'none', 'none or zstd (mcap only)'),
+    Param('rig_topics', True, 'record every topic named in rig.yaml topics:'),
+    Param('topics', [''], 'more topic names'),
+    Param('regex', '', 'and topics matching this (like ros2 bag record -e)'),
+    Param('exclude_regex', '', 'never topics matching this'),
+    Param('all_topics', False, 'everything in the graph'),
+    Param('max_bag_size_mb', 0.0, 'split after this size (0 = never)', (0.0, 1e9)),
+    Param('max_bag_duration_s', 0.0, 'split after this long (0 = never)', (0.0, 1e9)),
+    Param('flush_interval_s', 1.0, 'at most this much received data is lost to a kill -9',
+          (0.0, 3600.0)),
+    Param('fsync', False, 'also fsync at each flush (power loss, not just crashes)'),
+    Param('queue_messages', 2000, 'writer queue bound; a full queue drops (counted)',
+          (1, 10**8)),
+    Param('queue_mb', 512.0, 'writer queue bound, MiB', (0.001, 1e6)),
+    Param('qos_depth', 50, 'subscription depth', (1, 10**6)),
+    Param('discovery_period_s', 0.5, 'look for new topics this often (steady time)',
+          (0.01, 3600.0)),
+]
 
 
 def rig_topic_names(cfg) -> list[str]:
@@ -134,25 +157,14 @@ class Recorder(Node):
             except ValueError:      # not the main thread (tests): nothing to change
                 pass
         cfg = declare_rig_config(self)
-        p = self.declare_parameter
-        output = p('output', '').value
-        self.storage = p('storage', 'mcap').value
-        self.topic_list = list(p('topics', ['']).value)
-        self.topic_list = [t for t in self.topic_list if t]
-        regex = p('regex', '').value
-        exclude = p('exclude_regex', '').value
-        self.include_rig = bool(p('rig_topics', True).value)
-        self.all_topics = bool(p('all_topics', False).value)
-        max_mb = float(p('max_bag_size_mb', 0.0).value)
-        max_s = float(p('max_bag_duration_s', 0.0).value)
-        flush_s = float(p('flush_interval_s', 1.0).value)
-        fsync = bool(p('fsync', False).value)
-        qmsgs = int(p('queue_messages', 2000).value)
-        qmb = float(p('queue_mb', 512.0).value)
-        compression = p('compression', 'none').value
-        self.depth = int(p('qos_depth', 50).value)
-        discovery_s = float(p('discovery_period_s', 0.5).value)
-        diag_s = float(p('diagnostics_period_s', 1.0).value)
+        p = declare(self, PARAMETERS)
+        output = p.output
+        self.storage = p.storage
+        self.topic_list = [t for t in p.topics if t]
+        regex, exclude = p.regex, p.exclude_regex
+        self.include_rig = p.rig_topics
+        self.all_topics = p.all_topics
+        self.depth = p.qos_depth
         try:
             self.regex = re.compile(regex) if regex else None
             self.exclude = re.compile(exclude) if exclude else None
@@ -165,19 +177,22 @@ class Recorder(Node):
             stamp = datetime.datetime.now().strftime('%Y_%m_%d-%H_%M_%S')
             output = f'rosbag2_{stamp}'
         self.bag_path = Path(output).expanduser().resolve()
-        writer = BagWriter(self.bag_path, storage=self.storage, compression=compression,
-                           max_bytes=int(max_mb * 2**20), max_duration_s=max_s, fsync=fsync)
-        self.recording = Recording(writer, queue_messages=qmsgs, queue_bytes=int(qmb * 2**20),
-                                   flush_interval_s=flush_s)
+        writer = BagWriter(self.bag_path, storage=self.storage, compression=p.compression,
+                           max_bytes=int(p.max_bag_size_mb * 2**20),
+                           max_duration_s=p.max_bag_duration_s, fsync=p.fsync)
+        self.recording = Recording(writer, queue_messages=p.queue_messages,
+                                   queue_bytes=int(p.queue_mb * 2**20),
+                                   flush_interval_s=p.flush_interval_s)
         self.subs = {}
         self.sub_qos = {}            # topic -> (message class, QoS profile in use)
         self.skipped = {}            # topic -> why it is not recorded
-        self.diag_pub = self.create_publisher(DiagnosticArray, cfg.topics.diagnostics, 10)
         self.create_service(Trigger, '~/pause', self._pause)
         self.create_service(Trigger, '~/resume', self._resume)
         self.create_service(Trigger, '~/split_bagfile', self._split)
-        self.create_timer(discovery_s, self._discover)
-        self.create_timer(diag_s, self._diagnose)
+        steady_timer(self, p.discovery_period_s, self._discover)
+        self.diagnostics = Updater(self)
+        self.diagnostics.setHardwareID(str(self.bag_path))
+        self.diagnostics.add('bag', self._diagnose)
         self._reported_error = ''
         self.get_logger().info(f'recording to {self.bag_path} ({self.storage})')
         self._discover()
@@ -278,7 +293,7 @@ class Recorder(Node):
         return res
 
     # -- diagnostics -----------------------------------------------------------------------
-    def _diagnose(self) -> None:
+    def _diagnose(self, stat):
         st = self.recording.stats()
         if st['error']:
             level, msg = ERROR, st['error']
@@ -293,8 +308,7 @@ class Recorder(Node):
             level, msg = OK, st['state']
         values = dict(st, bag=str(self.bag_path), topics=len(self.subs),
                       skipped='; '.join(f'{k}: {v}' for k, v in self.skipped.items()))
-        publish_diagnostics(self, self.diag_pub, [
-            diagnostic_status('recorder: bag', str(self.bag_path), level, msg, values)])
+        return fill(stat, level, msg, values)
 
     def on_shutdown(self) -> None:
         meta = self.recording.stop()

@@ -4,18 +4,26 @@ Camera calibration files in the camera_info_manager YAML format (what ROS tools 
 ``config/camera_info/{main,side}.yaml`` hold the rig's calibrations; the camera_trigger
 node publishes them as CameraInfo, and the mock hardware builds the same structure from
 the simulated pinhole cameras in config/rig.yaml, so both rigs publish alike.
+Calibration URLs follow camera_info_manager: ``file:///abs/path.yaml``,
+``package://<pkg>/<path in its share directory>``, a plain path, with ``${NAME}`` (the
+camera's name) and ``${ROS_HOME}`` substituted; :func:`save_calibration` writes what the
+``set_camera_info`` service receives (the standard camera_calibration tool commits so).
 """
 
 from __future__ import annotations
 
 import math
+import os
+import re
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import yaml
 
 __all__ = ['CalibrationError', 'Calibration', 'load_calibration', 'calibration_from_camera',
-           'calibration_to_yaml', 'default_calibration_path']
+           'calibration_to_yaml', 'default_calibration_path', 'resolve_url',
+           'check_calibration', 'save_calibration']
 
 
 class CalibrationError(ValueError):
@@ -121,3 +129,89 @@ def default_calibration_path(camera: str) -> Path:
         return share / 'config' / 'camera_info' / f'{camera}.yaml'
     except Exception:  # not installed through colcon: report the source path
         return src / f'{camera}.yaml'
+
+
+_VARIABLE = re.compile(r'\$\{([A-Za-z_][A-Za-z0-9_]*)\}')
+
+
+def _substitute(url: str, camera: str) -> str:
+    def value(m):
+        name = m.group(1)
+        if name == 'NAME':
+            return camera
+        if name == 'ROS_HOME':
+            return os.environ.get('ROS_HOME') or str(Path.home() / '.ros')
+        raise CalibrationError(f'{url}: unknown variable ${{{name}}} (known: ${{NAME}}, '
+                               '${ROS_HOME})')
+    return _VARIABLE.sub(value, url)
+
+
+def resolve_url(url: str, camera: str) -> Path:
+    """
+    Turn a camera_info_manager URL into a file path.
+
+    '' = the package's ``config/camera_info/<camera>.yaml``; ``file://`` takes an absolute
+    path; ``package://pkg/rel`` a path in the package's share directory (from the ament
+    index); a bare path is taken as it is. Raises CalibrationError for other schemes or an
+    unknown package.
+    """
+    if not url:
+        return default_calibration_path(camera)
+    text = _substitute(url, camera)
+    if text.startswith('file://'):
+        path = text[len('file://'):]
+        if not path.startswith('/'):
+            raise CalibrationError(f'{url}: a file:// URL needs an absolute path '
+                                   '(file:///path/to/camera.yaml)')
+        return Path(path)
+    if text.startswith('package://'):
+        pkg, _, rel = text[len('package://'):].partition('/')
+        if not pkg or not rel:
+            raise CalibrationError(f'{url}: expected package://<package>/<path>')
+        try:
+            from ament_index_python.packages import get_package_share_directory
+            share = get_package_share_directory(pkg)
+        except Exception as exc:  # PackageNotFoundError, or no ament index at all
+            raise CalibrationError(f'{url}: package {pkg!r} not found: {exc}') from None
+        return Path(share) / rel
+    if '://' in text:
+        raise CalibrationError(f'{url}: unsupported URL (file://, package:// or a path)')
+    return Path(text)
+
+
+def check_calibration(cal: Calibration) -> None:
+    """Raise CalibrationError if a calibration (e.g. received over a service) is unusable."""
+    if cal.width <= 0 or cal.height <= 0:
+        raise CalibrationError(f'image size {cal.width}x{cal.height} is not positive')
+    for name, vals, n in (('K', cal.k, 9), ('R', cal.r, 9), ('P', cal.p, 12), ('D', cal.d, 0)):
+        if n and len(vals) != n:
+            raise CalibrationError(f'{name} needs {n} values, got {len(vals)}')
+        if not all(math.isfinite(float(v)) for v in vals):
+            raise CalibrationError(f'{name} has non-finite values: {list(vals)}')
+    if cal.k[0] <= 0 or cal.k[4] <= 0:
+        raise CalibrationError(f'focal lengths fx={cal.k[0]}, fy={cal.k[4]} must be positive')
+
+
+def save_calibration(cal: Calibration, path) -> Path:
+    """
+    Write ``cal`` as camera_info_manager YAML at ``path``, atomically; return the path.
+
+    A half-written calibration must never replace a good one: the text goes to a
+    temporary file beside it, which is then renamed over the old file.
+    """
+    check_calibration(cal)
+    p = Path(path)
+    tmp = None
+    try:
+        p.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f'.{p.name}.', dir=p.parent)
+        with os.fdopen(fd, 'w') as f:
+            f.write(calibration_to_yaml(cal))
+        os.replace(tmp, p)
+        tmp = None
+    except OSError as exc:
+        raise CalibrationError(f'{p}: cannot write calibration: {exc.strerror or exc}') from None
+    finally:
+        if tmp is not None and os.path.exists(tmp):
+            os.unlink(tmp)
+    return p
