@@ -184,12 +184,12 @@ class RigClient:
         zeros = np.zeros(6)
         self.pub_scene.publish(String(data=json.dumps(scene)))
         self.pub_command.publish(Float64MultiArray(data=zeros.tolist()))
-        wait_until(lambda: 'waiting' in self.inference_state, 10.0,
+        wait_until(lambda: 'waiting' in self.inference_state, 30.0,
                    what='inference to take the new scene', processes=procs)
         self._settle(zeros, procs)
         time.sleep(0.2)
         stamp = self._snap(procs, 'rest', scene['id'], zeros)
-        wait_until(lambda: self.inference_state == 'predicting', 10.0,
+        wait_until(lambda: self.inference_state == 'predicting', 30.0,
                    what='inference to take the rest images', processes=procs)
         return self.prepared(stamp)
 
