@@ -16,6 +16,12 @@ import traceback
 os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
 os.environ.setdefault('ROS_DOMAIN_ID', str(os.getpid() % 100 + 101))
 
+from softshape_ros.transport import configure_transport  # noqa: E402
+
+# Every benchmark process talks DDS the way the nodes do (the shipped profile unless the
+# environment says otherwise); bench_transport sets it per case to compare.
+configure_transport()
+
 import benchmarks  # noqa: E402
 
 
