@@ -176,10 +176,15 @@ def test_free_run_publishes_at_the_camera_rate_stamped_with_capture_time(ros, tm
     folder = write_folder(tmp_path / 'frames', 12)
     probe = Probe(ros)
     _camera(ros, source=str(folder), fps=20.0, free_run=True)
-    ros.wait_for(lambda: len(probe.images) >= 8, what='free-run frames without triggers')
-    with probe.lock:
-        msgs = list(probe.images)
-        times = {stamp_to_ns(m.header.stamp): stamp_to_ns(m.time_ref) for m in probe.times}
+    def frames_and_their_times():
+        # Image and capture time are two topics: a frame may arrive before its time does.
+        with probe.lock:
+            msgs = list(probe.images)
+            times = {stamp_to_ns(m.header.stamp): stamp_to_ns(m.time_ref) for m in probe.times}
+        done = len(msgs) >= 8 and all(stamp_to_ns(m.header.stamp) in times for m in msgs)
+        return done and (msgs, times)
+    msgs, times = ros.wait_for(frames_and_their_times,
+                               what='free-run frames without triggers, with their capture times')
     stamps = [stamp_to_ns(m.header.stamp) for m in msgs]
     assert stamps == sorted(stamps) and len(set(stamps)) == len(stamps)
     for m, s in zip(msgs, stamps):
