@@ -176,6 +176,7 @@ def test_free_run_publishes_at_the_camera_rate_stamped_with_capture_time(ros, tm
     folder = write_folder(tmp_path / 'frames', 12)
     probe = Probe(ros)
     _camera(ros, source=str(folder), fps=20.0, free_run=True)
+
     def frames_and_their_times():
         # Image and capture time are two topics: a frame may arrive before its time does.
         with probe.lock:
