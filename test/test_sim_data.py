@@ -13,7 +13,7 @@ from softshape_ros.model.reproduce import select_views
 from softshape_ros.scene import Scene
 from softshape_ros.sim import SimRig
 from softshape_ros.sim.generate import (
-    MAX_GAP_M, TOWARD_WINDOW_RAD, ContactSample, bend_directions, generate, make_plan,
+    CONTACT_GAP_M, MAX_GAP_M, TOWARD_WINDOW_RAD, ContactSample, bend_directions, generate, make_plan,
     measure_contact, toward_pressures)
 
 CFG = load_rig_config()
@@ -89,6 +89,12 @@ def test_measure_contact_on_a_known_press():
     net = np.sum([k.force_n for k in st.contacts], axis=0)
     assert c.force_n == pytest.approx(float(np.linalg.norm(net))) and c.force_n > 0.1
     assert c.penetration_m == pytest.approx(st.max_penetration_m)
+    # The arc against the exact backbone every 10 um (the record interpolates the samples).
+    X = np.linspace(0.0, rig.rod.length, 4601)
+    g, _ = rig.rod.at(rig.rod.forward(st.q, jac=False), X, jac=False)
+    gap = rig.obstacles[0].sdf(g[:, :3, 3])[0] - rig.rod.radii[rig.rod.locate(X)[0]]
+    inside = gap <= CONTACT_GAP_M
+    assert inside.any() and c.arc_m == pytest.approx(inside.sum() * (X[1] - X[0]), abs=2e-5)
     away = rig.solve([0, 1.2e5, 1.2e5, 0, 1.2e5, 1.2e5])
     assert measure_contact(away, rig.obstacles) == ContactSample(False, 0.0, 0.0, 0.0)
 
