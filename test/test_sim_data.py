@@ -13,8 +13,8 @@ from softshape_ros.model.reproduce import select_views
 from softshape_ros.scene import Scene
 from softshape_ros.sim import SimRig
 from softshape_ros.sim.generate import (
-    CONTACT_GAP_M, MAX_GAP_M, TOWARD_WINDOW_RAD, ContactSample, bend_directions, generate, make_plan,
-    measure_contact, toward_pressures)
+    CONTACT_GAP_M, MAX_GAP_M, TOWARD_WINDOW_RAD, ContactSample, bend_directions, generate,
+    make_plan, measure_contact, toward_pressures)
 
 CFG = load_rig_config()
 VIEWS = ['main', 'side']
