@@ -17,6 +17,7 @@ default a temporary one; the datasets are deleted afterwards).
 
 from __future__ import annotations
 
+import inspect
 import json
 import os
 import shutil
@@ -100,10 +101,24 @@ def run_cli(tree: Path, args: list[str]) -> dict:
 
 
 def overhead(n: int) -> dict:
-    """Per-sample ms on one core: solve, render, contact record, and generate's total."""
+    """
+    Per-sample ms on one core: solve, render, contact record, and generate's total.
+
+    Self-contained (it runs as source in a subprocess of each tree; code without a contact
+    record times none).
+    """
+    import tempfile
+    import time
+    from pathlib import Path
+
     from softshape_ros.config import load_rig_config
     from softshape_ros.sim import SimRig
-    from softshape_ros.sim.generate import generate, make_plan, measure_contact
+    from softshape_ros.sim.generate import generate, make_plan
+    try:
+        from softshape_ros.sim.generate import measure_contact
+    except ImportError:
+        def measure_contact(state, obstacles):
+            return None
     cfg = load_rig_config()
     views = list(cfg.cameras)[:2]
     plan = make_plan(cfg, n, max(1, n // 50), seed=1)
@@ -166,8 +181,14 @@ def run() -> dict:
             result['runs'][name] = r
             shutil.rmtree(out, ignore_errors=True)
         m = int(os.environ.get('SIMULATE_BENCH_OVERHEAD_N', '200'))
-        if m:
-            result['one_core_per_sample'] = overhead(m)
+        for name, tree in trees if m else []:
+            code = f'{inspect.getsource(overhead)}\nimport json\nprint(json.dumps(overhead({m})))'
+            proc = subprocess.run([sys.executable, '-c', code], cwd=tree, capture_output=True,
+                                  text=True, env=dict(os.environ, OMP_NUM_THREADS='1'))
+            if proc.returncode != 0:
+                raise RuntimeError(f'{tree}: overhead run failed: {proc.stderr[-500:]}')
+            result['runs'][name]['one_core_per_sample'] = json.loads(
+                proc.stdout.strip().splitlines()[-1])
     finally:
         if not os.environ.get('SIMULATE_BENCH_DIR'):
             shutil.rmtree(scratch, ignore_errors=True)

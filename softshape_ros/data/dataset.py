@@ -169,9 +169,10 @@ class DatasetRows:
         if contact is not None:
             values.update(zip(CONTACT_ARRAYS, contact))
         for name, v in values.items():
+            # Unmapped, not flushed: the pages are the file's in the page cache (every
+            # process sees them); msync per block would cost ~5 ms. close() syncs once.
             mm = self._rows(name, start, stop)
             mm[...] = v
-            mm.flush()
             del mm
 
     def _span(self, i) -> tuple[int, int]:
@@ -265,6 +266,14 @@ class DatasetWriter:
                               '|net force of the object on the robot|; penetration_m: '
                               'deepest penetration'}
             del touching
+        for name in self.rows.shapes:
+            # On disk before the folder is renamed into place (a crash never leaves zeros
+            # behind a complete-looking folder).
+            fd = os.open(self.tmp / f'{name}.npy', os.O_RDONLY)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
         (self.tmp / 'meta.json').write_text(json.dumps(self.meta, indent=2, sort_keys=True))
         if self.path.exists():
             shutil.rmtree(self.path)
