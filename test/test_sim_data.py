@@ -2,6 +2,7 @@
 
 import json
 import math
+import os
 
 import numpy as np
 import pytest
@@ -238,3 +239,53 @@ def test_corrupt_or_incomplete_records_on_disk_are_refused(tmp_path):
     (tmp_path / 'd' / 'meta.json').write_text(json.dumps(dict(meta, version=9)))
     with pytest.raises(DatasetError, match='format version 9'):
         load_dataset(tmp_path / 'd')
+
+
+def test_a_failing_worker_stops_the_run_and_leaves_nothing(tmp_path):
+    plan = make_plan(CFG, 6, 2, seed=0)
+    plan.pressures[4, 2] = np.nan                   # refused by the rig in the second scene
+    with pytest.raises(ValueError, match='non-finite'):
+        generate(CFG, plan, tmp_path / 'ds', VIEWS, workers=2, progress=False, chunk=2)
+    assert list(tmp_path.iterdir()) == []           # no dataset, no .partial folder
+
+
+def test_simulate_cli_refuses_bad_worker_counts_and_shares(tmp_path, capsys):
+    from softshape_ros.cli import main
+    base = ['simulate', '--samples', '2', '--scenes', '1', '--out', str(tmp_path / 'x')]
+    assert main(base + ['--workers', '-1']) == 2
+    assert '--workers must be >= 0' in capsys.readouterr().err
+    assert main(base + ['--toward-share', '2']) == 2
+    assert 'toward-share' in capsys.readouterr().err
+    assert not (tmp_path / 'x').exists()
+
+
+@pytest.mark.parametrize('kw, match', [
+    (dict(views=['main', 'top']), 'views must be cameras'),
+    (dict(size=0), 'size must be an integer >= 1'),
+    (dict(supersample=1.5), 'supersample must be an integer'),
+    (dict(noise=(-1.0, 0.0)), 'noise'),
+    (dict(noise=(0.0, float('nan'))), 'noise'),
+    (dict(chunk=0), 'chunk must be'),
+])
+def test_generate_refuses_bad_settings_before_starting(tmp_path, kw, match):
+    plan = make_plan(CFG, 2, 1, seed=0)
+    args = dict(views=VIEWS, workers=2, progress=False)
+    args.update(kw)
+    with pytest.raises(ValueError, match=match):
+        generate(CFG, plan, tmp_path / 'ds', **args)
+    assert list(tmp_path.iterdir()) == []
+
+
+class _DiesInTheWorker(int):
+    """A seed that ends the process unpickling it: a worker killed mid-run."""
+
+    def __reduce__(self):
+        return (os._exit, (3,))
+
+
+def test_a_dead_worker_is_an_error_not_a_hang(tmp_path):
+    plan = make_plan(CFG, 4, 2, seed=0)
+    plan.seed = _DiesInTheWorker(0)
+    with pytest.raises(RuntimeError, match='worker process died'):
+        generate(CFG, plan, tmp_path / 'ds', VIEWS, workers=2, progress=False, chunk=2)
+    assert list(tmp_path.iterdir()) == []

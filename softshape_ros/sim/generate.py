@@ -325,16 +325,19 @@ def simulate_chunk(job):
     target = np.empty((n, *initial.shape), np.uint8)
     pressure = np.empty((n, 6), np.float32)
     record = np.zeros((4, n))
-    stats = {'replaced': 0, 'iterations': np.empty(n, np.int32)}
+    stats = {'replaced': 0, 'iterations': np.empty(n, np.int32), 'failed': []}
     for k, p in enumerate(pressures):
         for attempt in range(MAX_RETRIES + 1):
             try:
                 st = rig.solve(p)
                 break
-            except SolverError:
+            except SolverError as exc:
                 if attempt == MAX_RETRIES:
                     raise
                 stats['replaced'] += 1
+                stats['failed'].append({'row': chunk.start + k, 'scene': scene.id,
+                                        'pressures_pa': [float(v) for v in p],
+                                        'error': str(exc)[:200]})
                 p = redraw.uniform(0.0, 1.0, 6) * limits
                 rig.set_scene(scene)
         target[k] = inputs(st)
@@ -359,20 +362,61 @@ def _context():
     return ctx
 
 
+def _check_args(cfg: RigConfig, views, size, supersample, noise, chunk) -> None:
+    """Refuse bad settings here, with their name, before any process starts."""
+    unknown = [v for v in views if v not in cfg.cameras]
+    if not list(views) or unknown:
+        raise ValueError(f'views must be cameras of the config {list(cfg.cameras)}, got '
+                         f'{list(views)}')
+    for name, v in (('size', size), ('supersample', supersample), ('chunk', chunk)):
+        if int(v) != v or v < 1:
+            raise ValueError(f'{name} must be an integer >= 1, got {v!r}')
+    if len(noise) != 2 or not all(math.isfinite(v) and v >= 0 for v in noise):
+        raise ValueError(f'noise (image gray levels, pressure Pa) must be >= 0, got {noise}')
+
+
+def _pool(workers: int, init, jobs):
+    """
+    Start the worker processes and hand them the jobs: return (pool, futures).
+
+    The start method is thread-safe (forkserver, else spawn), and the processes start
+    while the environment says one BLAS thread each (they are forked from the forkserver
+    as it was when it started, or spawned as the jobs are submitted).
+    """
+    from concurrent.futures import ProcessPoolExecutor
+    saved = {k: os.environ.get(k) for k in _THREAD_VARS}
+    os.environ.update({k: '1' for k in _THREAD_VARS})
+    try:
+        pool = ProcessPoolExecutor(workers, mp_context=_context(), initializer=_init_worker,
+                                   initargs=init)
+        return pool, [pool.submit(simulate_chunk, j) for j in jobs]
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
 def generate(cfg: RigConfig, plan: Plan, out, views, size: int = 64, gray: bool = True,
              workers: int = 0, supersample: int = 3, noise=(0.0, 0.0), overwrite=False,
              progress: bool = True, source: str = '', chunk: int = CHUNK):
     """
     Write the plan as a dataset at ``out``: chunks over processes, tqdm progress.
 
-    ``workers``: processes (0: all cores; 1: this process). Returns (Dataset, summary).
+    ``workers``: processes (0: all cores; 1: this process). A worker that dies (killed,
+    out of memory) stops the run with a RuntimeError instead of hanging it; any failure
+    leaves no folder behind. Returns (Dataset, summary).
     """
     import time
+    from concurrent.futures import as_completed
+    from concurrent.futures.process import BrokenProcessPool
 
     from tqdm import tqdm
 
     from softshape_ros.data.dataset import DatasetWriter
     t0 = time.perf_counter()
+    _check_args(cfg, views, size, supersample, noise, chunk)
     n = len(plan.pressures)
     channels = 1 if gray else 3
     writer = DatasetWriter(out, n, list(views), channels, size, cfg.max_pressures_pa,
@@ -381,7 +425,7 @@ def generate(cfg: RigConfig, plan: Plan, out, views, size: int = 64, gray: bool 
             for c in plan.chunks(chunk)]
     workers = max(1, min(len(jobs), workers or os.cpu_count() or 1))
     init = (cfg, writer.rows, size, gray, list(views), supersample, noise)
-    touching, replaced, pen = 0, 0, 0.0
+    touching, replaced, pen, failed = 0, 0, 0.0, []
     iters = np.zeros(n, np.int32)
     bar = tqdm(total=n, desc='simulate', unit='sample', disable=not progress)
     pool = None
@@ -390,36 +434,30 @@ def generate(cfg: RigConfig, plan: Plan, out, views, size: int = 64, gray: bool 
             _init_worker(*init)
             results = map(simulate_chunk, jobs)
         else:
-            saved = {k: os.environ.get(k) for k in _THREAD_VARS}
-            os.environ.update({k: '1' for k in _THREAD_VARS})   # one BLAS thread a worker
-            try:
-                pool = _context().Pool(workers, _init_worker, init)
-            finally:
-                for k, v in saved.items():
-                    if v is None:
-                        os.environ.pop(k, None)
-                    else:
-                        os.environ[k] = v
-            results = pool.imap_unordered(simulate_chunk, jobs)
+            pool, futures = _pool(workers, init, jobs)
+            results = (f.result() for f in as_completed(futures))
         for c, stats in results:
             touching += stats['touching']
             replaced += stats['replaced']
+            failed += stats['failed']
             iters[c.start:c.stop] = stats['iterations']
             pen = max(pen, stats['max_penetration_m'])
             bar.update(c.stop - c.start)
-        if pool is not None:
-            pool.close()
-            pool.join()
+    except BrokenProcessPool as exc:
+        writer.abort()
+        raise RuntimeError(f'simulate: a worker process died ({exc}); killed or out of '
+                           'memory? Nothing was written.') from None
     except BaseException:
-        if pool is not None:
-            pool.terminate()
         writer.abort()
         raise
     finally:
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
         bar.close()
     toward = plan.toward if plan.toward is not None else np.zeros(n, bool)
     summary = {'samples': n, 'touching_share': touching / n,
                'replaced_failed_solves': replaced,
+               'failed_solves': sorted(failed, key=lambda f: f['row'])[:100],
                'median_newton_iterations': float(np.median(iters)),
                'max_penetration_m': pen, 'toward_share': float(np.mean(toward))}
     distribution = {'min_gap_m': MIN_GAP_M, 'max_gap_m': MAX_GAP_M, 'gap_power': GAP_POWER,
