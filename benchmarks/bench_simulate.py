@@ -7,12 +7,14 @@ pages split between the processes that map them). ``SIMULATE_BENCH_BASE`` names 
 source trees (``:``-separated, e.g. ``git worktree add /tmp/base <commit>``) run the same
 way in the same call, side by side. It also times, in this process on one core, what a
 sample costs in ``SimRig.solve`` and ``render_inputs`` and what ``generate`` adds around
-them (planning, the contact record, writing, the worker machinery).
+them (planning, the contact record, writing, the worker machinery), and how fast the write
+path alone (worker processes, chunks, memory-mapped rows) takes 100 000 samples.
 
 Sizes via environment variables: SIMULATE_BENCH_N (samples, default 2000),
 SIMULATE_BENCH_SCENES (default 12), SIMULATE_BENCH_WORKERS (default 0: all cores),
-SIMULATE_BENCH_OVERHEAD_N (default 200; 0 skips it), SIMULATE_BENCH_DIR (scratch folder,
-default a temporary one; the datasets are deleted afterwards).
+SIMULATE_BENCH_OVERHEAD_N (default 200; 0 skips it), SIMULATE_BENCH_IO_N (default 100000,
+the write path alone; 0 skips it), SIMULATE_BENCH_DIR (scratch folder, default a temporary
+one; the datasets are deleted afterwards).
 """
 
 from __future__ import annotations
@@ -27,6 +29,8 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+
+import numpy as np
 
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -69,35 +73,92 @@ def _memory(pids) -> tuple[int, int]:
     return rss, pss
 
 
+class PeakMemory:
+    """Sample the memory of a process tree every 0.1 s in a thread, keep the peaks."""
+
+    def __init__(self, pid: int):
+        self.pid, self.rss, self.pss, self.procs = pid, 0, 0, 0
+        self._done = threading.Event()
+        self._thread = threading.Thread(target=self._watch, daemon=True)
+
+    def _watch(self):
+        while not self._done.is_set():
+            pids = _tree(self.pid)
+            rss, pss = _memory(pids)
+            self.rss, self.pss = max(self.rss, rss), max(self.pss, pss)
+            self.procs = max(self.procs, len(pids))
+            self._done.wait(0.1)
+
+    def __enter__(self):
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        self._done.set()
+        self._thread.join()
+
+    def report(self) -> dict:
+        return {'peak_rss_mib': round(self.rss / 2 ** 20, 1),
+                'peak_pss_mib': round(self.pss / 2 ** 20, 1), 'processes': self.procs}
+
+
 def run_cli(tree: Path, args: list[str]) -> dict:
     """Run ``softshape <args>`` from source ``tree``; return its JSON, wall time, memory."""
-    peak = {'rss': 0, 'pss': 0, 'procs': 0}
     t0 = time.perf_counter()
     proc = subprocess.Popen([sys.executable, '-c', RUN_CLI, *args], cwd=tree,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    done = threading.Event()
-
-    def watch():
-        while not done.is_set():
-            pids = _tree(proc.pid)
-            rss, pss = _memory(pids)
-            peak['rss'], peak['pss'] = max(peak['rss'], rss), max(peak['pss'], pss)
-            peak['procs'] = max(peak['procs'], len(pids))
-            done.wait(0.1)
-
-    th = threading.Thread(target=watch, daemon=True)
-    th.start()
-    out, err = proc.communicate()
+    with PeakMemory(proc.pid) as peak:
+        out, err = proc.communicate()
     wall = time.perf_counter() - t0
-    done.set()
-    th.join()
     if proc.returncode != 0:
         raise RuntimeError(f'{tree}: softshape {" ".join(args)} exited {proc.returncode}: '
                            f'{err.strip().splitlines()[-1] if err.strip() else ""}')
     summary = json.loads(out.strip().splitlines()[-1])
-    return {'summary': summary, 'wall_s': round(wall, 2),
-            'peak_rss_mib': round(peak['rss'] / 2 ** 20, 1),
-            'peak_pss_mib': round(peak['pss'] / 2 ** 20, 1), 'processes': peak['procs']}
+    return {'summary': summary, 'wall_s': round(wall, 2), **peak.report()}
+
+
+_IO = {}
+
+
+def _io_init(rows, shape):
+    rng = np.random.default_rng(0)
+    _IO.update(rows=rows, img=rng.integers(0, 255, shape, dtype=np.uint8))
+
+
+def _io_chunk(span):
+    a, b = span
+    k = b - a
+    t = np.arange(k) % 3 > 0
+    _IO['rows'].put(slice(a, b), _IO['img'][:1], _IO['img'][:k], np.zeros((k, 6)), 0,
+                    (t, np.where(t, 1e-3, 0.0), np.where(t, 0.5, 0.0), np.where(t, 1e-5, 0.0)))
+    return k
+
+
+def io_ceiling(n: int, folder: Path, workers: int) -> dict:
+    """
+    Write ``n`` stereo 64x64 samples (fixed images) the way ``generate`` does, no simulator.
+
+    Worker processes (forkserver) write chunks of 50 rows through ``DatasetRows.put``: the
+    samples/s the machinery allows, and its memory, at any size.
+    """
+    from concurrent.futures import ProcessPoolExecutor
+
+    from softshape_ros.data.dataset import DatasetWriter
+    from softshape_ros.sim.generate import CHUNK, _context
+    t0 = time.perf_counter()
+    w = DatasetWriter(folder / 'io', n, ['main', 'side'], 1, 64, [1.5e5] * 6, overwrite=True,
+                      contact=True)
+    spans = [(a, min(a + CHUNK, n)) for a in range(0, n, CHUNK)]
+    with PeakMemory(os.getpid()) as peak:
+        with ProcessPoolExecutor(workers, mp_context=_context(), initializer=_io_init,
+                                 initargs=(w.rows, (CHUNK, 2, 1, 64, 64))) as pool:
+            done = sum(pool.map(_io_chunk, spans, chunksize=8))
+        ds = w.close()
+    wall = time.perf_counter() - t0
+    ok = done == n and bool(ds.contact.touching[1]) and not ds.contact.touching[0]
+    shutil.rmtree(folder / 'io', ignore_errors=True)
+    return {'samples': n, 'wall_s': round(wall, 2), 'samples_per_s': round(n / wall),
+            'read_back_ok': ok, **peak.report()}
 
 
 def overhead(n: int) -> dict:
@@ -180,6 +241,9 @@ def run() -> dict:
                                        1))
             result['runs'][name] = r
             shutil.rmtree(out, ignore_errors=True)
+        io_n = int(os.environ.get('SIMULATE_BENCH_IO_N', '100000'))
+        if io_n:
+            result['io_ceiling'] = io_ceiling(io_n, scratch, workers or os.cpu_count() or 1)
         m = int(os.environ.get('SIMULATE_BENCH_OVERHEAD_N', '200'))
         for name, tree in trees if m else []:
             code = f'{inspect.getsource(overhead)}\nimport json\nprint(json.dumps(overhead({m})))'
