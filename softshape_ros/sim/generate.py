@@ -21,6 +21,7 @@ from __future__ import annotations
 import math
 import multiprocessing as mp
 import os
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -295,29 +296,38 @@ def _init_worker(cfg, rows, size, gray, views, supersample, noise):
                    supersample=supersample, rig=rig, rest=None)
 
 
+CPU_PARTS = ('solve', 'render', 'contact_record', 'rest_images', 'write', 'other')
+
+
 def simulate_chunk(job):
     """
     Simulate and write one chunk: the scene's rest images, then each actuation.
 
     Runs in a worker process; returns (rows, stats). The rig starts from the scene's rest
     equilibrium, with the scene's seed for the rest and the chunk's for the actuations,
-    whichever process runs it and whatever it ran before.
+    whichever process runs it and whatever it ran before. ``stats['cpu_s']``: this
+    process's CPU time per part (``CPU_PARTS``), what ``generate`` reports per sample.
     """
+    cpu = time.process_time
+    c_start = cpu()
     w = _WORKER
     rig, views = w['rig'], w['views']
     chunk, scene, pressures, seed = job
     si = chunk.scene_index
+    spent = dict.fromkeys(CPU_PARTS, 0.0)
 
     def inputs(state):
         img = rig.render_inputs(state, w['size'], w['gray'], w['supersample'], views)
         return np.stack([img[v] for v in views])
 
+    c0 = cpu()
     rig.set_scene(scene)
     rig.rng = np.random.default_rng([seed, si])
     rest = rig.solve([0.0] * 6)
     if w['rest'] is None or w['rest'][0] != si:
         w['rest'] = (si, inputs(rest))
     initial = w['rest'][1]
+    spent['rest_images'] += cpu() - c0
     rig.rng = np.random.default_rng([seed, si, chunk.start, 0])
     redraw = np.random.default_rng([seed, si, chunk.start, 1])
     limits = np.asarray(w['cfg'].max_pressures_pa, dtype=float)
@@ -327,6 +337,7 @@ def simulate_chunk(job):
     record = np.zeros((4, n))
     stats = {'replaced': 0, 'iterations': np.empty(n, np.int32), 'failed': []}
     for k, p in enumerate(pressures):
+        c0 = cpu()
         for attempt in range(MAX_RETRIES + 1):
             try:
                 st = rig.solve(p)
@@ -340,16 +351,26 @@ def simulate_chunk(job):
                                         'error': str(exc)[:200]})
                 p = redraw.uniform(0.0, 1.0, 6) * limits
                 rig.set_scene(scene)
+        c1 = cpu()
         target[k] = inputs(st)
+        c2 = cpu()
         pressure[k] = st.pressures_pa
         c = measure_contact(st, rig.obstacles)
         record[:, k] = (c.touching, c.arc_m, c.force_n, c.penetration_m)
         stats['iterations'][k] = st.iterations
+        c3 = cpu()
+        spent['solve'] += c1 - c0
+        spent['render'] += c2 - c1
+        spent['contact_record'] += c3 - c2
     contact = (record[0].astype(bool), record[1].astype(np.float32),
                record[2].astype(np.float32), record[3].astype(np.float32))
+    c0 = cpu()
     w['rows'].put(slice(chunk.start, chunk.stop), initial, target, pressure, scene.id, contact)
+    spent['write'] += cpu() - c0
     stats['touching'] = int(contact[0].sum())
     stats['max_penetration_m'] = float(record[3].max())
+    spent['other'] = cpu() - c_start - sum(spent.values())
+    stats['cpu_s'] = spent
     return chunk, stats
 
 
@@ -408,14 +429,13 @@ def generate(cfg: RigConfig, plan: Plan, out, views, size: int = 64, gray: bool 
     out of memory) stops the run with a RuntimeError instead of hanging it; any failure
     leaves no folder behind. Returns (Dataset, summary).
     """
-    import time
     from concurrent.futures import as_completed
     from concurrent.futures.process import BrokenProcessPool
 
     from tqdm import tqdm
 
     from softshape_ros.data.dataset import DatasetWriter
-    t0 = time.perf_counter()
+    t0, cpu0 = time.perf_counter(), time.process_time()
     _check_args(cfg, views, size, supersample, noise, chunk)
     n = len(plan.pressures)
     channels = 1 if gray else 3
@@ -426,6 +446,7 @@ def generate(cfg: RigConfig, plan: Plan, out, views, size: int = 64, gray: bool 
     workers = max(1, min(len(jobs), workers or os.cpu_count() or 1))
     init = (cfg, writer.rows, size, gray, list(views), supersample, noise)
     touching, replaced, pen, failed = 0, 0, 0.0, []
+    spent = dict.fromkeys(CPU_PARTS, 0.0)
     iters = np.zeros(n, np.int32)
     bar = tqdm(total=n, desc='simulate', unit='sample', disable=not progress)
     pool = None
@@ -442,6 +463,8 @@ def generate(cfg: RigConfig, plan: Plan, out, views, size: int = 64, gray: bool 
             failed += stats['failed']
             iters[c.start:c.stop] = stats['iterations']
             pen = max(pen, stats['max_penetration_m'])
+            for part, v in stats['cpu_s'].items():
+                spent[part] += v
             bar.update(c.stop - c.start)
     except BrokenProcessPool as exc:
         writer.abort()
@@ -470,5 +493,13 @@ def generate(cfg: RigConfig, plan: Plan, out, views, size: int = 64, gray: bool 
         dropped={'count': 0, 'why': 'failed solves are redrawn, counted in '
                  'simulator.replaced_failed_solves'})
     wall = time.perf_counter() - t0
+    # CPU per sample: the workers' parts, and this process (planning the jobs, the
+    # progress bar, collecting results, closing the dataset).
+    ms = {part: round(v * 1e3 / n, 3) for part, v in spent.items()}
+    ms['parent'] = round((time.process_time() - cpu0) * 1e3 / n, 3)
+    if workers == 1:
+        ms['parent'] = round(max(0.0, ms['parent'] - sum(spent.values()) * 1e3 / n), 3)
+    ms['beyond_solve_render'] = round(sum(v for k, v in ms.items()
+                                          if k not in ('solve', 'render')), 3)
     return ds, dict(summary, workers=workers, wall_s=round(wall, 3),
-                    samples_per_s=round(n / wall, 1))
+                    samples_per_s=round(n / wall, 1), cpu_ms_per_sample=ms)
