@@ -8,7 +8,8 @@ source trees (``:``-separated, e.g. ``git worktree add /tmp/base <commit>``) run
 way in the same call, side by side. It also times, in this process on one core, what a
 sample costs in ``SimRig.solve`` and ``render_inputs`` and what ``generate`` adds around
 them (planning, the contact record, writing, the worker machinery), and how fast the write
-path alone (worker processes, chunks, memory-mapped rows) takes 100 000 samples.
+path alone (worker processes, chunks, memory-mapped rows) takes 100 000 samples, and the
+peak memory of ``DatasetWriter`` writing them in one process, per tree.
 
 Sizes via environment variables: SIMULATE_BENCH_N (samples, default 2000),
 SIMULATE_BENCH_SCENES (default 12), SIMULATE_BENCH_WORKERS (default 0: all cores),
@@ -213,6 +214,50 @@ def overhead(n: int) -> dict:
     return {k: (round(v, 3) if isinstance(v, float) else v) for k, v in out.items()}
 
 
+def writer_memory(n: int) -> dict:
+    """
+    Write ``n`` stereo 64x64 samples in blocks of 50 through ``DatasetWriter.put``, in one process.
+
+    Self-contained (it runs as source in a subprocess of each tree): the writer's own peak
+    RSS, which grows with the dataset where the writer keeps the written pages mapped.
+    """
+    import resource
+    import shutil
+    import tempfile
+    import time
+    from pathlib import Path
+
+    import numpy as np
+
+    from softshape_ros.data.dataset import DatasetWriter
+    b = 50
+    img = np.random.default_rng(0).integers(0, 255, (b, 2, 1, 64, 64), dtype=np.uint8)
+    has_contact = 'contact' in DatasetWriter.__init__.__code__.co_varnames
+    folder = Path(tempfile.mkdtemp(prefix='writer_memory'))
+    t0 = time.perf_counter()
+    w = DatasetWriter(folder / 'ds', n, ['main', 'side'], 1, 64, [1.5e5] * 6,
+                      **({'contact': True} if has_contact else {}))
+    free = np.zeros(b, bool)
+    record = ((free, np.zeros(b), np.zeros(b), np.zeros(b)),) if has_contact else ()
+    for a in range(0, n, b):
+        w.put(slice(a, a + b), img[:1], img, np.zeros((b, 6)), 0, *record)
+    w.close()
+    wall = time.perf_counter() - t0
+    shutil.rmtree(folder)
+    return {'samples': n, 'wall_s': round(wall, 2),
+            'peak_rss_mib': round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)}
+
+
+def _in_tree(fn, tree: Path, arg: int) -> dict:
+    """Run the self-contained ``fn(arg)`` in a subprocess of source ``tree``; its JSON."""
+    code = f'{inspect.getsource(fn)}\nimport json\nprint(json.dumps({fn.__name__}({arg})))'
+    proc = subprocess.run([sys.executable, '-c', code], cwd=tree, capture_output=True,
+                          text=True, env=dict(os.environ, OMP_NUM_THREADS='1'))
+    if proc.returncode != 0:
+        raise RuntimeError(f'{tree}: {fn.__name__} failed: {proc.stderr[-500:]}')
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
 def run() -> dict:
     n = int(os.environ.get('SIMULATE_BENCH_N', '2000'))
     scenes = int(os.environ.get('SIMULATE_BENCH_SCENES', '12'))
@@ -247,14 +292,11 @@ def run() -> dict:
         if io_n:
             result['io_ceiling'] = io_ceiling(io_n, scratch, workers or os.cpu_count() or 1)
         m = int(os.environ.get('SIMULATE_BENCH_OVERHEAD_N', '200'))
-        for name, tree in trees if m else []:
-            code = f'{inspect.getsource(overhead)}\nimport json\nprint(json.dumps(overhead({m})))'
-            proc = subprocess.run([sys.executable, '-c', code], cwd=tree, capture_output=True,
-                                  text=True, env=dict(os.environ, OMP_NUM_THREADS='1'))
-            if proc.returncode != 0:
-                raise RuntimeError(f'{tree}: overhead run failed: {proc.stderr[-500:]}')
-            result['runs'][name]['one_core_per_sample'] = json.loads(
-                proc.stdout.strip().splitlines()[-1])
+        for name, tree in trees:
+            if m:
+                result['runs'][name]['one_core_per_sample'] = _in_tree(overhead, tree, m)
+            if io_n:
+                result['runs'][name]['writer_one_process'] = _in_tree(writer_memory, tree, io_n)
     finally:
         if not os.environ.get('SIMULATE_BENCH_DIR'):
             shutil.rmtree(scratch, ignore_errors=True)
