@@ -53,8 +53,8 @@ class ReproConfig:
 def select_views(ds: Dataset, n: int) -> Dataset:
     """Keep the first ``n`` views of a dataset (mono = the main camera only)."""
     meta = dict(ds.meta, views=list(ds.meta['views'])[:n])
-    return Dataset(path=ds.path, initial=ds.initial[:, :n], target=ds.target[:, :n],
-                   pressure=ds.pressure, scene=ds.scene, meta=meta)
+    return dataclasses.replace(ds, initial=ds.initial[:, :n], target=ds.target[:, :n],
+                               meta=meta)
 
 
 def plan(ds: Dataset, cfg: ReproConfig) -> dict:
