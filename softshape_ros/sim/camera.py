@@ -27,6 +27,9 @@ class PinholeCamera:
         y = np.cross(z, x)
         self.R = np.column_stack([x, y, z])        # camera axes in world (world <- camera)
         self.crop = list(crop) if crop is not None else [0, 0, self.width, self.height]
+        # The renderer's light in the camera frame: from the camera, a little from above.
+        light = -self.R[:, 2] + np.array([0.0, 0.0, 0.6])
+        self.head_light = self.R.T @ (light / np.linalg.norm(light))
 
     @classmethod
     def from_config(cls, name, cam) -> 'PinholeCamera':

@@ -15,6 +15,7 @@ compiled pass per view that writes the uint8 image directly.
 
 from __future__ import annotations
 
+import math
 import threading
 
 import numba
@@ -26,12 +27,14 @@ BACKGROUND_RGB = np.array([0.94, 0.94, 0.94])
 ROBOT_RGB = np.array([0.62, 0.30, 0.22])       # gray ~0.37 when lit
 OBJECT_RGB = np.array([0.62, 0.80, 0.95])      # gray ~0.77 when lit
 ROBOT_AMBIENT, OBJECT_AMBIENT = 0.45, 0.72
-OUTLINE_TOLERANCE_PX = 0.1  # the mesh rings' chords stay this close to the tube's circle
+OUTLINE_TOLERANCE_PX = 0.1  # every mesh's chords stay this close to the true surface's outline
+NEAR_M = 1e-3              # geometry nearer the camera than this is cut away
+PLANE_EXTENT_M = 2000.0    # the plane object's mesh: a square this wide
 
 # Object kinds in the packed parameter rows.
 SPHERE, PLANE, CYLINDER, RING, PRISM = 0, 1, 2, 3, 4
 _KINDS = {'sphere': SPHERE, 'plane': PLANE, 'cylinder': CYLINDER, 'ring': RING, 'prism': PRISM}
-_OBJ_COLS = 48              # [kind, M (9), o (3), -, shape (24), x0 x1 y0 y1 zmin of the image]
+_OBJ_COLS = 24              # [kind, M (9): camera -> object, -, centre (3), -, shape (4), ..zmin]
 
 _JIT = dict(cache=True, nogil=True, error_model='numpy')
 _INLINE = dict(_JIT, inline='always')     # per-pixel helpers: a call costs more than the work
@@ -98,6 +101,7 @@ def tube_mesh(p, radii, n_theta, n_cap):
     """
     N = p.shape[0]
     T, U = _frames(p)
+    f = area_scale(n_theta)
     ang = 2.0 * np.pi * np.arange(n_theta) / n_theta
     ct, st = np.cos(ang), np.sin(ang)
     rings = N + 2 * (n_cap - 1)
@@ -119,7 +123,7 @@ def tube_mesh(p, radii, n_theta, n_cap):
             ux, uy, uz = U[k, 0], U[k, 1], U[k, 2]
             wx, wy, wz = ty * uz - tz * uy, tz * ux - tx * uz, tx * uy - ty * ux
             cl, sl = np.cos(lat), np.sin(lat)
-            r, px, py, pz = radii[k], p[k, 0], p[k, 1], p[k, 2]
+            r, px, py, pz = radii[k] * f, p[k, 0], p[k, 1], p[k, 2]
             for j in range(n_theta):
                 q = ring * n_theta + j
                 nx = cl * (ct[j] * ux + st[j] * wx) + sl * tx
@@ -131,8 +135,8 @@ def tube_mesh(p, radii, n_theta, n_cap):
     pole0, pole1 = V - 2, V - 1
     for c in range(3):
         norms[pole0, c], norms[pole1, c] = -T[0, c], T[N - 1, c]
-        verts[pole0, c] = p[0, c] - radii[0] * T[0, c]
-        verts[pole1, c] = p[N - 1, c] + radii[N - 1] * T[N - 1, c]
+        verts[pole0, c] = p[0, c] - f * radii[0] * T[0, c]
+        verts[pole1, c] = p[N - 1, c] + f * radii[N - 1] * T[N - 1, c]
     tris = np.empty((2 * rings * n_theta, 3), np.int32)
     n = 0
     for g in range(rings - 1):
@@ -147,7 +151,33 @@ def tube_mesh(p, radii, n_theta, n_cap):
         tris[n, 0], tris[n, 1], tris[n, 2] = pole0, jb, j
         tris[n + 1, 0], tris[n + 1, 1], tris[n + 1, 2] = pole1, last + j, last + jb
         n += 2
-    # Wind every triangle outward: its normal along its vertices' normals.
+    _wind_outward(verts, norms, tris)
+    return verts, norms, tris
+
+
+@numba.njit(**_JIT)
+def segments(radius, tol):
+    """Return the chords per turn that keep a circle of ``radius`` within ``tol`` (8..1024)."""
+    if tol >= radius:
+        return 8
+    return min(max(int(np.ceil(np.pi / np.arccos(1.0 - tol / radius))), 8), 1024)
+
+
+@numba.njit(**_JIT)
+def area_scale(n):
+    """
+    Return the radius factor that gives a regular n-gon the area of its circle.
+
+    Vertices a little outside, chord middles a little inside: the mesh's outline is then
+    unbiased, which the area-averaged network inputs would otherwise show as a thinner
+    robot (about 0.5 gray level at 64x64 with 0.4-pixel chords).
+    """
+    return np.sqrt(2.0 * np.pi / (n * np.sin(2.0 * np.pi / n)))
+
+
+@numba.njit(**_JIT)
+def _wind_outward(verts, norms, tris):
+    """Flip the triangles whose winding disagrees with their vertices' normals."""
     for n in range(tris.shape[0]):
         a, b, c = tris[n, 0], tris[n, 1], tris[n, 2]
         e1x, e1y, e1z = verts[b, 0] - verts[a, 0], verts[b, 1] - verts[a, 1], \
@@ -159,258 +189,289 @@ def tube_mesh(p, radii, n_theta, n_cap):
              + (e1x * e2y - e1y * e2x) * (norms[a, 2] + norms[b, 2] + norms[c, 2]))
         if g < 0.0:
             tris[n, 1], tris[n, 2] = c, b
-    return verts, norms, tris
 
 
 @numba.njit(**_JIT)
-def _raster_mesh(verts, norms, tris, fx, fy, cx, cy, u0, du, v0, dv, depth, ident, normal,
-                 scr):
-    """
-    Z-buffer the front faces of a closed camera-frame mesh with its interpolated normals.
+def _band(tris, n, r0, r1, m, closed):
+    """Add the 2m triangles between rings r0 and r1 of m vertices (first indices); return n."""
+    for j in range(m if closed else m - 1):
+        a, b = r0 + j, r0 + (j + 1) % m
+        c, d = r1 + j, r1 + (j + 1) % m
+        tris[n, 0], tris[n, 1], tris[n, 2] = a, b, c
+        tris[n + 1, 0], tris[n + 1, 1], tris[n + 1, 2] = b, d, c
+        n += 2
+    return n
 
-    Pixel (i, j) is the ray through grid point (u0 + du j, v0 + dv i). Depth is z, from 1/z
-    interpolated linearly in the image (exact on the triangle's plane); normals are
-    interpolated perspective-correctly. ``scr`` is work space for (j, i, 1/z) per vertex.
+
+@numba.njit(**_JIT)
+def object_mesh(o, tol):
+    """
+    Return (vertices, unit normals, triangles) of object row ``o`` in its own frame.
+
+    Curved surfaces get as many chords as keep them within ``tol`` metres; flat faces
+    carry their face normal (prism, cylinder caps). The plane is a square of
+    :data:`PLANE_EXTENT_M` a side (at 1 km, its edge is within a pixel of the horizon).
+    """
+    kind = int(o[0])
+    if kind == SPHERE:
+        r = o[17]
+        n = segments(r, tol)
+        verts, norms, tris = tube_mesh(np.zeros((1, 3)), np.array([r]), n, max(2, n // 4))
+        return verts, norms, tris
+    if kind == CYLINDER:
+        m = segments(o[17], tol)
+        r, hh = o[17] * area_scale(m), o[18]
+        verts = np.zeros((4 * m + 2, 3))
+        norms = np.zeros((4 * m + 2, 3))
+        for j in range(m):
+            c, s_ = np.cos(2.0 * np.pi * j / m), np.sin(2.0 * np.pi * j / m)
+            for g, (z, flat) in enumerate(((-hh, False), (hh, False), (-hh, True), (hh, True))):
+                q = g * m + j
+                verts[q, 0], verts[q, 1], verts[q, 2] = r * c, r * s_, z
+                if flat:
+                    norms[q, 2] = 1.0 if z > 0 else -1.0
+                else:
+                    norms[q, 0], norms[q, 1] = c, s_
+        verts[4 * m, 2], verts[4 * m + 1, 2] = -hh, hh
+        norms[4 * m, 2], norms[4 * m + 1, 2] = -1.0, 1.0
+        tris = np.empty((4 * m, 3), np.int32)
+        n = _band(tris, 0, 0, m, m, True)
+        for j in range(m):
+            tris[n, 0], tris[n, 1], tris[n, 2] = 4 * m, 2 * m + j, 2 * m + (j + 1) % m
+            tris[n + 1, 0], tris[n + 1, 1], tris[n + 1, 2] = 4 * m + 1, 3 * m + j, \
+                3 * m + (j + 1) % m
+            n += 2
+    elif kind == RING:
+        M, m = segments(o[17] + o[18], tol), segments(o[18], tol)
+        R0, r = o[17] * area_scale(M), o[18] * area_scale(m)
+        verts = np.empty((M * m, 3))
+        norms = np.empty((M * m, 3))
+        for i in range(M):
+            ca, sa = np.cos(2.0 * np.pi * i / M), np.sin(2.0 * np.pi * i / M)
+            for j in range(m):
+                cb, sb = np.cos(2.0 * np.pi * j / m), np.sin(2.0 * np.pi * j / m)
+                q = i * m + j
+                norms[q, 0], norms[q, 1], norms[q, 2] = cb * ca, cb * sa, sb
+                verts[q, 0] = (R0 + r * cb) * ca
+                verts[q, 1] = (R0 + r * cb) * sa
+                verts[q, 2] = r * sb
+        tris = np.empty((2 * M * m, 3), np.int32)
+        n = 0
+        for i in range(M):
+            n = _band(tris, n, i * m, ((i + 1) % M) * m, m, True)
+    elif kind == PRISM:
+        w, dp, h, sk = o[17], o[18], o[19], o[20]
+        ts = np.tan(sk)
+        corner = np.empty((8, 3))
+        for b in range(8):
+            sx, sy, sz = (b >> 2 & 1) * 2 - 1, (b >> 1 & 1) * 2 - 1, (b & 1) * 2 - 1
+            corner[b, 0] = sx * w / 2 + sz * h / 2 * ts
+            corner[b, 1], corner[b, 2] = sy * dp / 2, sz * h / 2
+        verts = np.empty((24, 3))
+        norms = np.empty((24, 3))
+        tris = np.empty((12, 3), np.int32)
+        f = 0
+        for bit in (4, 2, 1):
+            o1, o2 = (2, 1) if bit == 4 else ((4, 1) if bit == 2 else (4, 2))
+            for side in (0, bit):
+                quad = (side, side | o1, side | o1 | o2, side | o2)
+                e1 = corner[quad[1]] - corner[quad[0]]
+                e2 = corner[quad[3]] - corner[quad[0]]
+                nrm = np.array([e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2],
+                                e1[0] * e2[1] - e1[1] * e2[0]])
+                nrm /= np.sqrt(nrm @ nrm)
+                if nrm @ corner[quad[0]] < 0.0:
+                    nrm = -nrm                    # outward: the prism is centred
+                for v in range(4):
+                    verts[4 * f + v] = corner[quad[v]]
+                    norms[4 * f + v] = nrm
+                tris[2 * f, 0], tris[2 * f, 1], tris[2 * f, 2] = 4 * f, 4 * f + 1, 4 * f + 2
+                tris[2 * f + 1, 0], tris[2 * f + 1, 1], tris[2 * f + 1, 2] = \
+                    4 * f, 4 * f + 2, 4 * f + 3
+                f += 1
+    else:                                         # PLANE: z = 0, solid below
+        L = PLANE_EXTENT_M / 2
+        verts = np.array([[-L, -L, 0.0], [L, -L, 0.0], [L, L, 0.0], [-L, L, 0.0]])
+        norms = np.zeros((4, 3))
+        norms[:, 2] = 1.0
+        tris = np.array([[0, 1, 2], [0, 2, 3]], np.int32)
+    _wind_outward(verts, norms, tris)
+    return verts, norms, tris
+
+
+# -- rasterisation -------------------------------------------------------------------------------
+@numba.njit(**_INLINE)
+def _triangle(ax, ay, az, bx, by, bz, qx, qy, qz, na0, na1, na2, nb0, nb1, nb2, nc0, nc1, nc2,
+              ident_n, depth, ident, normal):
+    """
+    Z-buffer one triangle given in grid coordinates (j, i) with 1/z and normals per vertex.
+
+    Front faces only (negative area with x right, y down). ``depth`` holds 1/z (larger is
+    nearer), interpolated linearly in the image (exact on the triangle's plane); normals
+    are interpolated perspective-correctly.
     """
     H, W = depth.shape
-    for q in range(verts.shape[0]):
+    area = (bx - ax) * (qy - ay) - (by - ay) * (qx - ax)
+    if not area < 0.0:
+        return                                    # a back face, edge-on, or not finite
+    # Pixel centres inside the box (clamped to the frame first: a huge box is cheap).
+    j0 = max(math.ceil(max(min(ax, bx, qx), -1.0) - 1e-9), 0)
+    j1 = min(math.floor(min(max(ax, bx, qx), W + 1.0) + 1e-9), W - 1)
+    i0 = max(math.ceil(max(min(ay, by, qy), -1.0) - 1e-9), 0)
+    i1 = min(math.floor(min(max(ay, by, qy), H + 1.0) + 1e-9), H - 1)
+    if j0 > j1 or i0 > i1:
+        return
+    inv = 1.0 / area
+    za, zb, zc = az * inv, bz * inv, qz * inv
+    nax, nay, naz = na0 * za, na1 * za, na2 * za
+    nbx, nby, nbz = nb0 * zb, nb1 * zb, nb2 * zb
+    ncx, ncy, ncz = nc0 * zc, nc1 * zc, nc2 * zc
+    tol = 1e-9 * -area                            # shared edges: no pixel falls between
+    da, db, dc = -(qy - by), -(ay - qy), -(by - ay)
+    for i in range(i0, i1 + 1):
+        # Edge functions (area x barycentric weight, <= 0 inside), linear along the row.
+        wa = (qx - bx) * (i - by) - (qy - by) * (j0 - bx)
+        wb = (ax - qx) * (i - qy) - (ay - qy) * (j0 - qx)
+        wc = (bx - ax) * (i - ay) - (by - ay) * (j0 - ax)
+        for j in range(j0, j1 + 1):
+            if wa <= tol and wb <= tol and wc <= tol:
+                iz = wa * za + wb * zb + wc * zc
+                if iz > depth[i, j]:
+                    # Nearer (the buffer holds 1/z). The normal is left unnormalised (the
+                    # shading does that once per pixel).
+                    depth[i, j] = iz
+                    ident[i, j] = ident_n
+                    normal[i, j, 0] = wa * nax + wb * nbx + wc * ncx
+                    normal[i, j, 1] = wa * nay + wb * nby + wc * ncy
+                    normal[i, j, 2] = wa * naz + wb * nbz + wc * ncz
+            wa += da
+            wb += db
+            wc += dc
+
+
+@numba.njit(**_JIT)
+def _raster_mesh(verts, norms, tris, material, grid, depth, ident, normal):
+    """
+    Z-buffer the front faces of a camera-frame mesh, cut at :data:`NEAR_M` in front.
+
+    ``grid`` = (fx, fy, cx, cy, u0, du, v0, dv): pixel (i, j) is the ray through image point
+    (u0 + du j, v0 + dv i). ``ident`` gets ``material`` where the mesh is nearest.
+    """
+    fx, fy, cx, cy, u0, du, v0, dv = grid
+    V = verts.shape[0]
+    scr = np.empty((V, 3))
+    for q in range(V):
         iz = 1.0 / verts[q, 2]
         scr[q, 0] = (verts[q, 0] * iz * fx + cx - u0) / du
         scr[q, 1] = (verts[q, 1] * iz * fy + cy - v0) / dv
         scr[q, 2] = iz
+    poly = np.empty((4, 3))
+    pnrm = np.empty((4, 3))
+    pscr = np.empty((4, 3))
     for n in range(tris.shape[0]):
         a, b, c = tris[n, 0], tris[n, 1], tris[n, 2]
-        ax, ay = scr[a, 0], scr[a, 1]
-        bx, by = scr[b, 0], scr[b, 1]
-        qx, qy = scr[c, 0], scr[c, 1]
-        area = (bx - ax) * (qy - ay) - (by - ay) * (qx - ax)
-        if area >= 0.0:
-            continue                              # a back face (x right, y down) or edge-on
-        j0 = max(int(np.ceil(min(ax, bx, qx) - 1e-9)), 0)
-        j1 = min(int(np.floor(max(ax, bx, qx) + 1e-9)), W - 1)
-        i0 = max(int(np.ceil(min(ay, by, qy) - 1e-9)), 0)
-        i1 = min(int(np.floor(max(ay, by, qy) + 1e-9)), H - 1)
-        if j0 > j1 or i0 > i1:
+        inside = (verts[a, 2] > NEAR_M) + (verts[b, 2] > NEAR_M) + (verts[c, 2] > NEAR_M)
+        if inside == 3:
+            _triangle(scr[a, 0], scr[a, 1], scr[a, 2], scr[b, 0], scr[b, 1], scr[b, 2],
+                      scr[c, 0], scr[c, 1], scr[c, 2], norms[a, 0], norms[a, 1], norms[a, 2],
+                      norms[b, 0], norms[b, 1], norms[b, 2], norms[c, 0], norms[c, 1],
+                      norms[c, 2], material, depth, ident, normal)
             continue
-        inv = 1.0 / area
-        za, zb, zc = scr[a, 2] * inv, scr[b, 2] * inv, scr[c, 2] * inv
-        nax, nay, naz = norms[a, 0] * za, norms[a, 1] * za, norms[a, 2] * za
-        nbx, nby, nbz = norms[b, 0] * zb, norms[b, 1] * zb, norms[b, 2] * zb
-        ncx, ncy, ncz = norms[c, 0] * zc, norms[c, 1] * zc, norms[c, 2] * zc
-        tol = 1e-9 * -area                        # shared edges: no pixel falls between
-        for i in range(i0, i1 + 1):
-            # The edge functions (area x barycentric weight; <= 0 inside a front face) are
-            # linear along the row.
-            wa = (qx - bx) * (i - by) - (qy - by) * (j0 - bx)
-            wb = (ax - qx) * (i - qy) - (ay - qy) * (j0 - qx)
-            wc = (bx - ax) * (i - ay) - (by - ay) * (j0 - ax)
-            da, db, dc = -(qy - by), -(ay - qy), -(by - ay)
-            for j in range(j0, j1 + 1):
-                if wa <= tol and wb <= tol and wc <= tol:
-                    iz = wa * za + wb * zb + wc * zc
-                    z = 1.0 / iz
-                    if z < depth[i, j]:
-                        depth[i, j] = z
-                        ident[i, j] = n
-                        # (barycentric / z) weights; the sum over 1/z normalises, sign kept.
-                        nx = wa * nax + wb * nbx + wc * ncx
-                        ny = wa * nay + wb * nby + wc * ncy
-                        nz = wa * naz + wb * nbz + wc * ncz
-                        k = 1.0 / np.sqrt(nx * nx + ny * ny + nz * nz)
-                        normal[i, j, 0], normal[i, j, 1], normal[i, j, 2] = \
-                            nx * k, ny * k, nz * k
-                wa += da
-                wb += db
-                wc += dc
-
-
-# -- objects: exact ray intersections ------------------------------------------------------------
-@numba.njit(**_JIT)
-def _sphere_bounds(X, Y, Z, r):
-    """Return the normalised image bounds (x0, x1, y0, y1) of a sphere's exact silhouette."""
-    if Z - r <= 1e-9:
-        return -np.inf, np.inf, -np.inf, np.inf   # touches the camera plane: unbounded
-    den = Z * Z - r * r
-    sx = r * np.sqrt(X * X + den)
-    sy = r * np.sqrt(Y * Y + den)
-    return (X * Z - sx) / den, (X * Z + sx) / den, (Y * Z - sy) / den, (Y * Z + sy) / den
-
-
-@numba.njit(**_JIT)
-def _pixel_box(x0, x1, y0, y1, fx, fy, cx, cy, u0, du, v0, dv, W, H, box):
-    """Write the pixel box [i0, i1, j0, j1) covering normalised bounds, one pixel to spare."""
-    box[0], box[1], box[2], box[3] = 0, H, 0, W
-    if x0 > -np.inf:
-        box[2] = max(int(np.floor((x0 * fx + cx - u0) / du)) - 1, 0)
-    if x1 < np.inf:
-        box[3] = min(int(np.ceil((x1 * fx + cx - u0) / du)) + 2, W)
-    if y0 > -np.inf:
-        box[0] = max(int(np.floor((y0 * fy + cy - v0) / dv)) - 1, 0)
-    if y1 < np.inf:
-        box[1] = min(int(np.ceil((y1 * fy + cy - v0) / dv)) + 2, H)
-
-
-@numba.njit(**_INLINE)
-def _torus_sdf(px, py, pz, R0, r):
-    rho = np.sqrt(px * px + py * py)
-    s = R0 / max(rho, 1e-300)
-    vx, vy, vz = px - s * px, py - s * py, pz
-    nv = np.sqrt(vx * vx + vy * vy + vz * vz)
-    k = 1.0 / max(nv, 1e-300)
-    return nv - r, vx * k, vy * k, vz * k
-
-
-@numba.njit(**_INLINE)
-def _hit_object(kind, o, x, y):
-    """
-    Return (depth, unit normal in the camera frame) of the ray (x, y, 1) and object row ``o``.
-
-    The ray goes to the object's frame (origin ``o[10:13]``, direction ``M (x, y, 1)``, not
-    normalised, so the ray parameter is the depth) and is intersected there exactly as the
-    object's geometry says. ``kind`` is ``o[0]``, passed apart so that the branch is
-    hoisted out of the pixel loop.
-    """
-    inf = np.inf
-    dx = o[1] * x + o[2] * y + o[3]
-    dy = o[4] * x + o[5] * y + o[6]
-    dz = o[7] * x + o[8] * y + o[9]
-    ox, oy, oz = o[10], o[11], o[12]
-    t, nx, ny, nz = inf, 0.0, 0.0, 0.0
-    if kind == SPHERE:
-        ir = o[18]                                 # 1 / r; o[19] = |o|^2 - r^2
-        a = dx * dx + dy * dy + dz * dz
-        b = dx * ox + dy * oy + dz * oz
-        disc = b * b - a * o[19]
-        if disc >= 0.0:
-            tt = (-b - np.sqrt(disc)) / a
-            if tt > 0.0:
-                t = tt
-                nx, ny, nz = (ox + t * dx) * ir, (oy + t * dy) * ir, (oz + t * dz) * ir
-    elif kind == PLANE:
-        if oz > 0.0 and dz < 0.0:
-            t = -oz / dz
-            nz = 1.0
-    elif kind == CYLINDER:
-        r, hh, ir = o[17], o[18], o[19]            # o[20] = ox^2 + oy^2 - r^2
-        a = dx * dx + dy * dy
-        b = dx * ox + dy * oy
-        disc = b * b - a * o[20]
-        ts = inf
-        if disc >= 0.0 and a > 1e-300:
-            tt = (-b - np.sqrt(disc)) / a
-            if tt > 0.0 and abs(oz + tt * dz) <= hh:
-                ts = tt
-        tc = inf
-        if abs(oz) > hh and dz != 0.0:
-            sgn = 1.0 if oz > 0.0 else -1.0
-            tt = (sgn * hh - oz) / dz
-            xc, yc = ox + tt * dx, oy + tt * dy
-            if tt > 0.0 and xc * xc + yc * yc <= r * r:
-                tc = tt
-        if ts <= tc and ts < inf:
-            t = ts
-            nx, ny = (ox + t * dx) * ir, (oy + t * dy) * ir
-        elif tc < inf:
-            t = tc
-            nz = 1.0 if oz > 0.0 else -1.0
-    elif kind == RING:
-        # Sphere tracing (the torus distance is exact) along the unit ray, from where it
-        # enters the bounding sphere, as many steps as objects.py takes.
-        R0, r, Rb = o[17], o[18], o[17] + o[18]
-        dn = np.sqrt(dx * dx + dy * dy + dz * dz)
-        k = 1.0 / dn
-        ex, ey, ez = dx * k, dy * k, dz * k
-        b = ex * ox + ey * oy + ez * oz
-        disc = b * b - (ox * ox + oy * oy + oz * oz - Rb * Rb)
-        if disc > 0.0:
-            sq = np.sqrt(disc)
-            tt, tmax = max(-b - sq, 0.0), -b + sq
-            for _ in range(80):
-                dist = _torus_sdf(ox + tt * ex, oy + tt * ey, oz + tt * ez, R0, r)[0]
-                tt += dist
-                if not (dist > 1e-7 and tt <= tmax):
-                    break
-            dist, gx, gy, gz = _torus_sdf(ox + tt * ex, oy + tt * ey, oz + tt * ez, R0, r)
-            if abs(dist) < 1e-6 and tt <= tmax:
-                t, nx, ny, nz = tt * k, gx, gy, gz
-    elif kind == PRISM:
-        t0, t1, best = -inf, inf, 0
-        for f in range(6):
-            kx, ky, kz = o[17 + 3 * f], o[18 + 3 * f], o[19 + 3 * f]
-            den = kx * dx + ky * dy + kz * dz
-            num = o[35 + f] - (kx * ox + ky * oy + kz * oz)
-            if den < 0.0:
-                tk = num / den
-                if tk > t0:
-                    t0, best = tk, f
-            elif den > 0.0:
-                t1 = min(t1, num / den)
-            elif num < 0.0:
-                t1 = -inf                        # parallel to a face, outside it
-        if t0 <= t1 and t0 > 0.0:
-            t = t0
-            nx, ny, nz = o[17 + 3 * best], o[18 + 3 * best], o[19 + 3 * best]
-    if t == inf:
-        return inf, 0.0, 0.0, 0.0
-    # Local normal -> camera frame (M^T n).
-    return (t, o[1] * nx + o[4] * ny + o[7] * nz, o[2] * nx + o[5] * ny + o[8] * nz,
-            o[3] * nx + o[6] * ny + o[9] * nz)
+        if inside == 0:
+            continue
+        # Cut the triangle at z = NEAR_M (Sutherland-Hodgman): 1 or 2 triangles remain.
+        k = 0
+        idx = (a, b, c)
+        for e in range(3):
+            p0, p1 = idx[e], idx[(e + 1) % 3]
+            z0, z1 = verts[p0, 2], verts[p1, 2]
+            if z0 > NEAR_M:
+                poly[k] = verts[p0]
+                pnrm[k] = norms[p0]
+                k += 1
+            if (z0 > NEAR_M) != (z1 > NEAR_M):
+                s = (NEAR_M - z0) / (z1 - z0)
+                poly[k] = verts[p0] + s * (verts[p1] - verts[p0])
+                pnrm[k] = norms[p0] + s * (norms[p1] - norms[p0])
+                k += 1
+        for q in range(k):
+            iz = 1.0 / poly[q, 2]
+            pscr[q, 0] = (poly[q, 0] * iz * fx + cx - u0) / du
+            pscr[q, 1] = (poly[q, 1] * iz * fy + cy - v0) / dv
+            pscr[q, 2] = iz
+        for q in range(1, k - 1):
+            _triangle(pscr[0, 0], pscr[0, 1], pscr[0, 2], pscr[q, 0], pscr[q, 1], pscr[q, 2],
+                      pscr[q + 1, 0], pscr[q + 1, 1], pscr[q + 1, 2], pnrm[0, 0], pnrm[0, 1],
+                      pnrm[0, 2], pnrm[q, 0], pnrm[q, 1], pnrm[q, 2], pnrm[q + 1, 0],
+                      pnrm[q + 1, 1], pnrm[q + 1, 2], material, depth, ident, normal)
 
 
 # -- the frame ---------------------------------------------------------------------------------
 @numba.njit(**_JIT)
-def _render_kernel(out, depth, ident, normal, u0, du, v0, dv, fx, fy, cx, cy, verts, norms,
-                   tris, objs, light, robot_rgb, robot_amb, obj_rgb, obj_amb, bg):
+def _render_kernel(out, depth, ident, normal, grid, pc, radii, objs, tol_px, light,
+                   robot_rgb, robot_amb, obj_rgb, obj_amb, bg):
     """
-    Z-buffer the robot mesh and the packed objects, then shade every pixel into ``out``.
+    Mesh and z-buffer the robot (camera-frame backbone ``pc``) and the objects, then shade.
 
-    ``depth``, ``ident`` (triangle, or triangle count + object) and ``normal`` are work
-    buffers of the frame's size.
+    ``depth`` (1/z), ``ident`` (0 robot, 1 object, -1 background) and ``normal`` are work
+    buffers of the frame's size; ``out`` gets the H x W x 3 uint8 image. Returns 0, or the
+    code of what is wrong with the backbone (``_ERRORS``) before drawing anything.
     """
-    H, W = depth.shape
-    depth[:, :] = np.inf
+    # The robot's ring size: chords within tol_px where the tube is largest in the image.
+    scale = max(grid[0] / grid[5], grid[1] / grid[7])
+    r_px = 0.0
+    for k in range(pc.shape[0]):
+        if not (np.isfinite(pc[k, 0]) and np.isfinite(pc[k, 1]) and np.isfinite(pc[k, 2])
+                and np.isfinite(radii[k])):
+            return 1
+        if not radii[k] > 0.0:
+            return 2
+        if not pc[k, 2] - radii[k] > NEAR_M:
+            return 3
+        r_px = max(r_px, radii[k] * scale / (pc[k, 2] - radii[k]))
+    n_theta = segments(r_px, tol_px)
+    depth[:, :] = 0.0                             # 1/z: nothing is at z = inf
     ident[:, :] = -1
-    scr = np.empty((verts.shape[0], 3))
-    _raster_mesh(verts, norms, tris, fx, fy, cx, cy, u0, du, v0, dv, depth, ident, normal, scr)
-    K = tris.shape[0]
-    box = np.zeros(4, np.int64)
+    verts, norms, tris = tube_mesh(pc, radii, n_theta, max(2, n_theta // 4))
+    _raster_mesh(verts, norms, tris, 0, grid, depth, ident, normal)
+    px = grid[5] / grid[0]                        # metres per pixel at unit depth
     for m in range(objs.shape[0]):
         o = objs[m]
-        _pixel_box(o[41], o[42], o[43], o[44], fx, fy, cx, cy, u0, du, v0, dv, W, H, box)
-        zmin = o[45]
-        kind = int(o[0])
-        for i in range(box[0], box[1]):
-            y = (v0 + dv * i - cy) / fy
-            for j in range(box[2], box[3]):
-                if zmin >= depth[i, j]:
-                    continue                      # the robot is in front of all of it
-                x = (u0 + du * j - cx) / fx
-                t, nx, ny, nz = _hit_object(kind, o, x, y)
-                if t < depth[i, j]:
-                    depth[i, j] = t
-                    ident[i, j] = K + m
-                    normal[i, j, 0], normal[i, j, 1], normal[i, j, 2] = nx, ny, nz
+        lv, ln, tris = object_mesh(o, tol_px * px * max(o[23], NEAR_M))
+        # Object frame -> camera frame: x_c = centre + M^T x_l.
+        verts = np.empty_like(lv)
+        norms = np.empty_like(ln)
+        for q in range(lv.shape[0]):
+            for c in range(3):
+                verts[q, c] = o[13 + c] + (o[1 + c] * lv[q, 0] + o[4 + c] * lv[q, 1]
+                                           + o[7 + c] * lv[q, 2])
+                norms[q, c] = o[1 + c] * ln[q, 0] + o[4 + c] * ln[q, 1] + o[7 + c] * ln[q, 2]
+        _raster_mesh(verts, norms, tris, 1, grid, depth, ident, normal)
+    H, W = depth.shape
     lx, ly, lz = light[0], light[1], light[2]
+    r0, r1, r2 = robot_rgb[0] * 255.0, robot_rgb[1] * 255.0, robot_rgb[2] * 255.0
+    o0, o1, o2 = obj_rgb[0] * 255.0, obj_rgb[1] * 255.0, obj_rgb[2] * 255.0
     for i in range(H):
-        y = (v0 + dv * i - cy) / fy
         for j in range(W):
             k = ident[i, j]
             if k < 0:
                 out[i, j, 0], out[i, j, 1], out[i, j, 2] = bg[0], bg[1], bg[2]
                 continue
-            x = (u0 + du * j - cx) / fx
             nx, ny, nz = normal[i, j, 0], normal[i, j, 1], normal[i, j, 2]
-            if k < K:
-                rgb, amb = robot_rgb, robot_amb
+            lam = (nx * lx + ny * ly + nz * lz) / np.sqrt(nx * nx + ny * ny + nz * nz)
+            lam = min(max(lam, 0.0), 1.0)
+            # Rounded to the nearest level (values are >= 0 and < 255.5).
+            if k == 0:
+                s = robot_amb + (1.0 - robot_amb) * lam
+                out[i, j, 0] = np.uint8(r0 * s + 0.5)
+                out[i, j, 1] = np.uint8(r1 * s + 0.5)
+                out[i, j, 2] = np.uint8(r2 * s + 0.5)
             else:
-                rgb, amb = obj_rgb, obj_amb
-            if nx * x + ny * y + nz > 0.0:
-                # Face the viewer (a normal pointing away means we see the inside of a shell).
-                nx, ny, nz = -nx, -ny, -nz
-            lam = min(max(nx * lx + ny * ly + nz * lz, 0.0), 1.0)
-            s = amb + (1.0 - amb) * lam
-            for c in range(3):
-                out[i, j, c] = np.uint8(min(max(np.rint(rgb[c] * s * 255.0), 0.0), 255.0))
+                s = obj_amb + (1.0 - obj_amb) * lam
+                out[i, j, 0] = np.uint8(o0 * s + 0.5)
+                out[i, j, 1] = np.uint8(o1 * s + 0.5)
+                out[i, j, 2] = np.uint8(o2 * s + 0.5)
+    return 0
 
 
 # -- Python side --------------------------------------------------------------------------------
@@ -418,8 +479,9 @@ def pack_objects(camera: PinholeCamera, obstacles) -> np.ndarray:
     """
     Return the obstacles as kernel rows in ``camera``'s frame; RenderError if one holds it.
 
-    A camera inside an object would see nothing of it (every ray starts inside), a silent
-    wrong image: refused instead.
+    Row: [kind, M (9, camera -> object rotation), -, -, -, centre (3, camera frame), -,
+    shape (4), -, -, least depth]. A camera inside an object would see nothing of it (its
+    inside faces are culled), a silent wrong image: refused instead.
     """
     rows = np.zeros((len(obstacles), _OBJ_COLS))
     Rc, pos = camera.R, camera.position
@@ -431,53 +493,35 @@ def pack_objects(camera: PinholeCamera, obstacles) -> np.ndarray:
         if not gap > 0.0:
             raise RenderError(f'camera {camera.name} at {pos.tolist()} m is inside the {obj.kind} '
                               f'(signed distance {gap:.4g} m): the scene cannot be placed')
-        M = obj.R.T @ Rc                           # camera -> object frame
+        M = obj.R.T @ Rc
         row = rows[k]
         row[0] = kind
         row[1:10] = M.ravel()
-        row[10:13] = obj.R.T @ (pos - obj.t)
-        centre = Rc.T @ (obj.t - pos)
+        row[13:16] = Rc.T @ (obj.t - pos)
         half = None
-        o = row[10:13]
         if kind == SPHERE:
-            row[17:20] = obj.r, 1.0 / obj.r, o @ o - obj.r ** 2
+            row[17] = obj.r
         elif kind == CYLINDER:
-            row[17:21] = obj.r, obj.hh, 1.0 / obj.r, o[0] ** 2 + o[1] ** 2 - obj.r ** 2
+            row[17:19] = obj.r, obj.hh
             half = (obj.r, obj.r, obj.hh)
         elif kind == RING:
             row[17:19] = obj.R0, obj.r
             half = (obj.R0 + obj.r, obj.R0 + obj.r, obj.r)
         elif kind == PRISM:
-            row[17:35] = np.asarray(obj.normals, dtype=float).ravel()
-            row[35:41] = obj.offsets
             w, dp, h, sk = obj.size
+            row[17:21] = w, dp, h, sk
             half = (w / 2 + h / 2 * abs(np.tan(sk)), dp / 2, h / 2)
-        row[41:46] = _image_bounds(kind, centre, M.T, half, getattr(obj, 'r', 0.0))
-        if not np.all(np.isfinite(row[:41])):
-            raise RenderError(f'object {obj.kind}: pose or size is not finite')
+        if not np.all(np.isfinite(row)) or not np.all(row[17:21] >= 0.0):
+            raise RenderError(f'object {obj.kind}: pose or size is not finite and >= 0')
+        # Least depth (sets how finely the object is meshed): its box's nearest corner.
+        if kind == PLANE:
+            row[23] = NEAR_M
+        elif kind == SPHERE:
+            row[23] = row[15] - obj.r
+        else:
+            signs = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)])
+            row[23] = float((row[13:16] + (signs * half) @ M).min(axis=0)[2])
     return rows
-
-
-def _image_bounds(kind, centre, Rco, half, radius):
-    """
-    Return (x0, x1, y0, y1, zmin): normalised image bounds and least depth of an object.
-
-    From the exact silhouette of a sphere, or the 8 corners of the object's local box
-    (``Rco`` turns local vectors into the camera frame); unbounded where the object
-    reaches the camera plane or is infinite (the plane).
-    """
-    inf = np.inf
-    if kind == PLANE:
-        return -inf, inf, -inf, inf, -inf
-    if kind == SPHERE:
-        return (*_sphere_bounds(*centre, radius), centre[2] - radius)
-    signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)])
-    corners = centre + (signs * half) @ Rco.T
-    z = corners[:, 2]
-    if z.min() <= 1e-9:
-        return -inf, inf, -inf, inf, -inf
-    x, y = corners[:, 0] / z, corners[:, 1] / z
-    return x.min(), x.max(), y.min(), y.max(), z.min()
 
 
 _workspace = threading.local()
@@ -493,12 +537,14 @@ def _buffers(H, W):
 
 
 def render_view(camera: PinholeCamera, centres: np.ndarray, radii: np.ndarray, obstacles,
-                grid=None, objects: np.ndarray | None = None) -> np.ndarray:
+                grid=None, objects: np.ndarray | None = None,
+                tol_px: float = OUTLINE_TOLERANCE_PX) -> np.ndarray:
     """
     Return an H x W x 3 uint8 RGB image of the tube through ``centres`` and the obstacles.
 
     ``grid`` comes from :meth:`PinholeCamera.grid` (default: the full frame); ``objects``
-    is :func:`pack_objects` of ``obstacles`` for this camera when already made. Raises
+    is :func:`pack_objects` of ``obstacles`` for this camera when already made; ``tol_px``
+    is how far (grid pixels) a mesh's outline may stay inside the true one. Raises
     :class:`RenderError` for a backbone that is not finite, radii that are not positive, an
     empty grid or a camera inside an object: never a silent image.
     """
@@ -511,45 +557,23 @@ def render_view(camera: PinholeCamera, centres: np.ndarray, radii: np.ndarray, o
     if c.ndim != 2 or c.shape[1] != 3 or len(c) < 1 or r.shape != (len(c),):
         raise RenderError(f'backbone must be (N, 3) points with N radii, got {c.shape} and '
                           f'{r.shape}')
-    if not (np.isfinite(c).all() and np.isfinite(r).all() and (r > 0).all()):
-        raise RenderError('backbone points and radii must be finite, radii > 0')
-    pc = (c - camera.position) @ camera.R          # camera frame
-    if ((pc[:, 2] - r) <= 0.0).any():
-        raise RenderError(f'camera {camera.name}: the robot reaches the camera plane')
     if objects is None:
         objects = pack_objects(camera, obstacles)
-    verts, norms, tris = tube_mesh(np.ascontiguousarray(pc), np.ascontiguousarray(r),
-                                   *mesh_resolution(camera, pc, r, du, dv))
-    light = -camera.R[:, 2] + np.array([0.0, 0.0, 0.6])
-    light = camera.R.T @ (light / np.linalg.norm(light))
+    pc = (c - camera.position) @ camera.R          # camera frame
     depth, ident, normal = _buffers(H, W)
     out = np.empty((H, W, 3), np.uint8)
-    _render_kernel(out, depth, ident, normal, float(u0), float(du), float(v0), float(dv),
-                   camera.fx, camera.fy, camera.cx, camera.cy, verts, norms, tris, objects,
-                   light,
-                   ROBOT_RGB, ROBOT_AMBIENT, OBJECT_RGB, OBJECT_AMBIENT, _BG)
+    grid8 = np.array([camera.fx, camera.fy, camera.cx, camera.cy, u0, du, v0, dv], dtype=float)
+    err = _render_kernel(out, depth, ident, normal, grid8, pc, np.ascontiguousarray(r), objects,
+                         float(tol_px), camera.head_light, ROBOT_RGB, ROBOT_AMBIENT, OBJECT_RGB,
+                         OBJECT_AMBIENT, _BG)
+    if err:
+        raise RenderError(f'camera {camera.name}: {_ERRORS[err]}')
     return out
 
 
-def mesh_resolution(camera: PinholeCamera, pc: np.ndarray, radii: np.ndarray, du: float,
-                    dv: float) -> tuple[int, int]:
-    """
-    Return (vertices per ring, cap bands) for a tube at camera-frame points ``pc``.
-
-    A ring of n chords sits r (1 - cos(pi / n)) inside its circle: n is the least for which
-    that is :data:`OUTLINE_TOLERANCE_PX` where the tube is largest in the image.
-    """
-    scale = max(camera.fx / du, camera.fy / dv)
-    r_px = float((radii * scale / (pc[:, 2] - radii)).max())
-    if r_px <= OUTLINE_TOLERANCE_PX:
-        n = 8
-    else:
-        n = int(np.ceil(np.pi / np.arccos(1.0 - OUTLINE_TOLERANCE_PX / r_px)))
-    n = int(min(max(n, 8), 1024))
-    return n, max(2, n // 4)
-
-
 _BG = np.clip(np.rint(BACKGROUND_RGB * 255.0), 0, 255).astype(np.uint8)
+_ERRORS = {1: 'backbone points and radii must be finite', 2: 'tube radii must be > 0',
+           3: 'the robot reaches the camera plane'}
 
 
 def to_uint8(img: np.ndarray) -> np.ndarray:
