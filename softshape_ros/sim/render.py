@@ -511,7 +511,7 @@ def pack_objects(camera: PinholeCamera, obstacles) -> np.ndarray:
             w, dp, h, sk = obj.size
             row[17:21] = w, dp, h, sk
             half = (w / 2 + h / 2 * abs(np.tan(sk)), dp / 2, h / 2)
-        if not np.all(np.isfinite(row)) or not np.all(row[17:21] >= 0.0):
+        if not np.all(np.isfinite(row)) or not np.all(row[17:20] >= 0.0):
             raise RenderError(f'object {obj.kind}: pose or size is not finite and >= 0')
         # Least depth (sets how finely the object is meshed): its box's nearest corner.
         if kind == PLANE:
