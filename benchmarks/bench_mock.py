@@ -54,6 +54,7 @@ def stream(tree: str | None, free_run_hz: float, window_s: float, triggers: int)
 
     cfg = load_rig_config()
     t = cfg.topics
+    import softshape_ros
     logs = Path(tempfile.mkdtemp(prefix='bench_mock_'))
     mock = NodeProcess('mock_hardware', {'free_run_hz': free_run_hz, 'tau_s': 0.05},
                        log_dir=logs, env=_env(tree)).start()
@@ -87,7 +88,7 @@ def stream(tree: str | None, free_run_hz: float, window_s: float, triggers: int)
             ex.spin_once(timeout_sec=0.05)
     spin = threading.Thread(target=spin_until_stopped, daemon=True)
     spin.start()
-    out = {'free_run_hz': free_run_hz, 'code': tree or str(ROOT)}
+    out = {'free_run_hz': free_run_hz, 'code': softshape_ros.__file__}
     try:
         deadline = time.monotonic() + 120
         while not (cmd.get_subscription_count() and trig.get_subscription_count()):
@@ -158,14 +159,19 @@ def record_stage(tree: str | None, scenes: int, actuations: int) -> dict:
     return r
 
 
-def _isolated(fn: str, *args) -> dict:
-    """Run ``fn(*args)`` of this file in a fresh interpreter (rclpy init once per process)."""
+def _isolated(fn: str, tree: str | None, *args) -> dict:
+    """
+    Run ``fn(tree, *args)`` of this file in a fresh interpreter running ``tree``'s code.
+
+    A fresh process each time: rclpy is initialised once per process, and the node it starts
+    must come from the same tree (no colcon install on the path for another checkout).
+    """
     code = ('import importlib.util, json, sys\n'
             'spec = importlib.util.spec_from_file_location("bench_mock", sys.argv[1])\n'
             'b = importlib.util.module_from_spec(spec); spec.loader.exec_module(b)\n'
             f'print(json.dumps(b.{fn}(*json.loads(sys.argv[2]))))\n')
-    res = subprocess.run([sys.executable, '-c', code, __file__, json.dumps(args)],
-                         capture_output=True, text=True, env=dict(os.environ))
+    res = subprocess.run([sys.executable, '-c', code, __file__, json.dumps((tree,) + args)],
+                         capture_output=True, text=True, env=_env(tree), cwd=tree or str(ROOT))
     if res.returncode != 0:
         return {'error': res.stderr[-1500:]}
     return json.loads(res.stdout.strip().splitlines()[-1])
