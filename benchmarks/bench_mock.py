@@ -1,6 +1,5 @@
 """
-mock_hardware benchmark: free-run stream and trigger-to-image latency across processes, and
-the demo's record stage against its 2 Hz floor.
+mock_hardware benchmark: free run and trigger latency across processes, the record stage.
 
 mock_hardware runs in its own process at the configured 640x480; this process subscribes
 (reliable, as the recorder) to both cameras. Reported (never asserted): frames received per

@@ -1,16 +1,16 @@
 """
-Z-buffered renderer compiled with numba: the robot as a tube of its real radius, objects as solids.
+Z-buffered rasteriser compiled with numba: the robot a tube of its real radius, objects solids.
 
-The robot is a closed triangle mesh (a ring of vertices around each backbone point, framed
-by parallel transport, and hemispherical caps) whose rings stay within a tenth of a pixel of
-the tube's circle (their vertex count follows the tube's size in pixels), rasterised front
-faces only, with depth from 1/z and normals interpolated perspective-correctly. Objects are
-intersected exactly, per pixel of their projected bounding box: sphere, plane, cylinder and
-oblique prism analytically, the ring by sphere tracing its exact distance. Each pixel keeps
-the nearest surface, so occlusion is right whichever is in front. Lambertian shading with a
-head light; the robot is dark, objects mid-light and the background light, so the three stay
-apart in gray (the model learns from them). Everything runs in the camera frame, in one
-compiled pass per view that writes the uint8 image directly.
+Every surface is a closed triangle mesh made for the view: the robot a ring of vertices
+around each backbone point (framed by parallel transport) closed by hemispherical caps; the
+objects (cylinder, ring, oblique prism, sphere, plane) from their dimensions and pose.
+Curved surfaces get as many chords as keep their outline within a tenth of a pixel, with an
+area-preserving radius so the outline is unbiased. Front faces only, depth from 1/z,
+normals interpolated perspective-correctly; each pixel keeps the nearest surface, so
+occlusion is right whichever is in front. Lambertian shading with a head light; the robot is
+dark, objects mid-light and the background light, so the three stay apart in gray (the
+model learns from them). Everything runs in the camera frame, in one compiled pass per view
+that writes the uint8 image directly.
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ PLANE_EXTENT_M = 2000.0    # the plane object's mesh: a square this wide
 # Object kinds in the packed parameter rows.
 SPHERE, PLANE, CYLINDER, RING, PRISM = 0, 1, 2, 3, 4
 _KINDS = {'sphere': SPHERE, 'plane': PLANE, 'cylinder': CYLINDER, 'ring': RING, 'prism': PRISM}
-_OBJ_COLS = 24              # [kind, M (9): camera -> object, -, centre (3), -, shape (4), ..zmin]
+_OBJ_COLS = 24              # see pack_objects
 
 _JIT = dict(cache=True, nogil=True, error_model='numpy')
 _INLINE = dict(_JIT, inline='always')     # per-pixel helpers: a call costs more than the work
@@ -544,7 +544,7 @@ def render_view(camera: PinholeCamera, centres: np.ndarray, radii: np.ndarray, o
 
     ``grid`` comes from :meth:`PinholeCamera.grid` (default: the full frame); ``objects``
     is :func:`pack_objects` of ``obstacles`` for this camera when already made; ``tol_px``
-    is how far (grid pixels) a mesh's outline may stay inside the true one. Raises
+    is how far (grid pixels) a mesh's outline may stray from the true one. Raises
     :class:`RenderError` for a backbone that is not finite, radii that are not positive, an
     empty grid or a camera inside an object: never a silent image.
     """

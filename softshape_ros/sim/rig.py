@@ -19,7 +19,7 @@ from softshape_ros.scene import Scene
 from softshape_ros.sim.camera import PinholeCamera
 from softshape_ros.sim.contact import DEFAULT_SMOOTHING_M, DEFAULT_STIFFNESS_N_M, ContactModel
 from softshape_ros.sim.objects import obstacle_from_scene
-from softshape_ros.sim.render import OUTLINE_TOLERANCE_PX, RenderError, pack_objects, render_view
+from softshape_ros.sim.render import RenderError, pack_objects, render_view
 from softshape_ros.sim.rod import Rod, RodSpec
 from softshape_ros.sim.statics import Actuator, SolverError, Statics
 
@@ -266,11 +266,9 @@ class SimRig:
         n = int(size) * int(supersample)
         for name in names:
             cam = self.cameras[name]
-            # Outlines to a tenth of an input pixel (the mesh need not be finer).
             img = self._noisy(render_view(cam, state.backbone_m, state.radii_m, self.obstacles,
                                           cam.grid(cam.crop, (n, n)),
-                                          objects=self._render_objects[name],
-                                          tol_px=OUTLINE_TOLERANCE_PX))
+                                          objects=self._render_objects[name]))
             out[name] = preprocess(img, [0, 0, n, n], int(size), gray)
         return out
 
