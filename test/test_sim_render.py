@@ -256,13 +256,17 @@ def test_bad_input_gives_clear_errors_never_an_image():
     for change in (dict(width=0), dict(height=0), dict(fx=0.0), dict(fy=float('nan'))):
         with pytest.raises(ValueError, match='camera main'):
             PinholeCamera.from_config('main', dataclasses.replace(MAIN, **change))
-    # A camera inside an object: the scene cannot be placed; the previous one stays.
-    rig.set_scene(sphere_scene(0.04))
-    before = rig.snap([0.0] * 6)['main']
-    with pytest.raises(RenderError, match='inside the sphere'):
-        rig.set_scene(Scene(id=9, object='sphere', position_m=(0.0, -0.2, 0.035),
-                            dims={'radius_m': 0.05}))
-    assert rig.scene.id == 0 and np.array_equal(rig.snap([0.0] * 6)['main'], before)
+    # A camera inside an object: no image from it (the shape still solves; SimCameras and
+    # so mock_hardware refuse such a scene and keep the previous one: test_sim_stream).
+    rig.set_scene(Scene(id=9, object='sphere', position_m=(0.0, -0.2, 0.035),
+                        dims={'radius_m': 0.05}))
+    rig.solve([0.0] * 6)
+    with pytest.raises(RenderError, match='camera main .* inside the sphere'):
+        rig.check_views()
+    for render in (lambda s: rig.render(s), lambda s: rig.render_inputs(s, cameras=['main'])):
+        with pytest.raises(RenderError, match='inside the sphere'):
+            render(st)
+    assert rig.render_inputs(st, cameras=['side'])['side'].shape == (1, 64, 64)
     # The robot reaching the camera: refused, not drawn inside out.
     near = dataclasses.replace(MAIN, position_m=[0.0, -0.01, 0.035])
     with pytest.raises(RenderError, match='camera plane'):

@@ -118,10 +118,13 @@ def test_failures_give_no_images_and_bad_scenes_keep_the_old_one():
     clock.t += 0.1
     cams.step(0.0)                                          # same pressures: not retried
     assert out == [] and cams.solver_errors == 1 and 'injected' in cams.last_error
-    cams.trigger(1, [float('nan')] + [0.0] * 5, 1)
-    cams.step(0.0)
-    assert out == [] and cams.solver_errors == 2
     assert any(level == 'error' and 'no images' in msg for level, msg in logs)
+    # Pressures the rig refuses (NaN, negative) on the real solver: no images either.
+    real, real_out, _, _ = _cameras(small_rig(), clock)
+    for bad in ([float('nan')] + [0.0] * 5, [-1.0] + [0.0] * 5):
+        real.trigger(1, bad, 1)
+        real.step(0.0)
+    assert real_out == [] and real.solver_errors == 2 and 'CommandError' in real.last_error
     # A scene with a camera inside the object cannot be placed: logged, the old one stays.
     good = Scene(id=1, object='none')
     cams.set_scene(good)

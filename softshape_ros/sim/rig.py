@@ -95,13 +95,15 @@ class SimRig:
         """Place the scene's object (None or object 'none': the robot alone)."""
         if scene is not None and not isinstance(scene, Scene):
             raise TypeError(f'set_scene expects a Scene or None, got {type(scene).__name__}')
-        obj = obstacle_from_scene(scene)
-        obstacles = [obj] if obj is not None else []
-        # Raises RenderError (a scene that cannot be placed) before anything changes.
-        self._render_objects = {n: pack_objects(cam, obstacles)
-                                for n, cam in self.cameras.items()}
         self.scene = scene
-        self.obstacles = obstacles
+        obj = obstacle_from_scene(scene)
+        self.obstacles = [obj] if obj is not None else []
+        self._render_objects = {}
+        for name, cam in self.cameras.items():
+            try:
+                self._render_objects[name] = pack_objects(cam, self.obstacles)
+            except RenderError as exc:    # e.g. a camera inside the object: solving still works
+                self._render_objects[name] = exc
         self.contact = (ContactModel(self.obstacles, *self.contact_args)
                         if self.obstacles and self.contact_on else None)
         self._q = None
@@ -237,8 +239,15 @@ class SimRig:
             img = np.clip(np.rint(noisy), 0, 255).astype(np.uint8)
         return img
 
+    def check_views(self, cameras=None) -> None:
+        """Raise the RenderError that keeps a camera from seeing this scene (e.g. inside it)."""
+        for name in cameras if cameras is not None else self.cameras:
+            if isinstance(self._render_objects.get(name), RenderError):
+                raise self._render_objects[name]
+
     def render(self, state: SimState) -> dict:
         """Return {camera: H x W x 3 uint8 RGB} at each camera's configured resolution."""
+        self.check_views()
         return {name: self._noisy(render_view(cam, state.backbone_m, state.radii_m,
                                               self.obstacles,
                                               objects=self._render_objects[name]))
@@ -262,6 +271,7 @@ class SimRig:
         unknown = [n for n in names if n not in self.cameras]
         if unknown:
             raise RenderError(f'unknown camera(s) {unknown}; the rig has {list(self.cameras)}')
+        self.check_views(names)
         out = {}
         n = int(size) * int(supersample)
         for name in names:

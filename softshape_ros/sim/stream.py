@@ -179,10 +179,12 @@ class SimCameras:
     def _apply_scene(self, scene) -> None:
         try:
             self.rig.set_scene(scene)
+            self.rig.check_views()        # a camera inside the object: no honest image
         except Exception as exc:  # a scene the simulator cannot place: keep the old one
             label = getattr(scene, 'id', '?')
             self.last_error = f'scene {label}: {exc}'
             self.log('error', f'scene {label} not applied, keeping the previous one: {exc}')
+            self.rig.set_scene(self.scene)
             return
         self.scene = scene
         self._scene_version += 1
