@@ -38,7 +38,7 @@ def test_mock_rig_session_to_dataset(ros, tmp_path):
     bag = tmp_path / 'mock_session'
     rec = ros.add(Recorder(parameter_overrides=_params(output=str(bag),
                                                        discovery_period_s=0.1)))
-    ros.add(MockHardware(parameter_overrides=_params(tau_s=0.02)))
+    ros.add(MockHardware(parameter_overrides=_params(tau_s=0.02, free_run_hz=0.0)))
     main_topic = cfg.topics.camera('camera_image', 'main')
     ros.wait_for(lambda: {cfg.topics.pressure_measured, main_topic} <= set(rec.subs),
                  timeout=30, what='recorder on the mock topics')

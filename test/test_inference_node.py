@@ -77,7 +77,7 @@ def rig(ros, trained_checkpoint):
     from softshape_ros.nodes.mock_hardware import MockHardware
     cfg = load_rig_config()
     probe = Probe(ros, cfg)
-    mock = ros.add(MockHardware())
+    mock = ros.add(MockHardware(parameter_overrides=[Parameter('free_run_hz', value=0.0)]))
     node = ros.add(InferenceNode(parameter_overrides=[
         Parameter('model', value=str(trained_checkpoint))]))
     ros.wait_for(lambda: node.count_subscribers(cfg.topics.pressure_command) >= 2

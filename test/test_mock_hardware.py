@@ -1,4 +1,4 @@
-"""mock_hardware on its own: command validation, regulators, watchdog, scenes, noise."""
+"""mock_hardware on its own: commands, regulators, watchdog, scenes, noise, free run."""
 
 import threading
 
@@ -52,7 +52,7 @@ class Probe:
 
 def _mock(ros, **params):
     from softshape_ros.nodes.mock_hardware import MockHardware
-    base = {'tau_s': 0.02}
+    base = {'tau_s': 0.02, 'free_run_hz': 0.0}         # triggers only unless a test says
     base.update(params)
     return ros.add(MockHardware(parameter_overrides=[Parameter(k, value=v)
                                                      for k, v in base.items()]))
@@ -108,7 +108,8 @@ def test_scene_and_trigger_give_images_and_bad_scene_is_ignored(ros):
     import time
     ns = time.time_ns()
     probe.trig.publish(probe.H(stamp=ns_to_stamp(ns)))
-    ros.wait_for(lambda: len(probe.images) == 1 and mock.jobs.empty(), what='image', timeout=20)
+    ros.wait_for(lambda: len(probe.images) == 1 and mock.cameras.idle(), what='image',
+                 timeout=20)
     assert mock.scene.id == 7 and 'malformed' in mock.last_error   # both bad ones ignored
     msg = probe.images[0]
     assert stamp_to_ns(msg.header.stamp) == ns
@@ -132,11 +133,63 @@ def test_solver_error_gives_no_images_and_diagnostics_error(ros):
 
     def fail(pressures):
         raise SolverError('did not converge (injected)')
-    mock.rig.snap = fail                      # the simulator failing, as it can at extremes
+    mock.rig.solve = fail                     # the simulator failing, as it can at extremes
     ros.wait_for(lambda: probe.trig.get_subscription_count(), what='discovery')
+    probe.send([2.0e4] + [0.0] * 5)           # a new shape (the rest one is already made)
+    ros.wait_for(lambda: probe.last() is not None and probe.last()[0] > 1.0e4,
+                 what='pressurised')
     probe.trig.publish(probe.H(stamp=ns_to_stamp(time.time_ns())))
     ros.wait_for(lambda: mock.solver_errors == 1, what='the solver error')
     ros.wait_for(lambda: probe.diags.get('mock_hardware: cameras', (0,))[0] == 2,
                  what='diagnostics ERROR', timeout=5)
     assert 'injected' in probe.diags['mock_hardware: cameras'][1]
     assert probe.images == [] and mock.frames == 0
+
+
+def test_free_run_streams_both_cameras_at_the_rate_and_still_answers_triggers(ros, tmp_path):
+    """
+    Free-run rate by message count over a window of capture stamps (not a timed assertion).
+
+    20 Hz at a small resolution: frames arrive stamped with their capture instants (late
+    slots skipped, never bunched), from both cameras, showing the current pressures'
+    shape; a trigger in between is answered under its own stamp. The rate's upper bound
+    catches bursts (a late frame must not be made up), the lower one a stalled stream.
+    """
+    import time
+
+    from sensor_msgs.msg import Image
+
+    from softshape_ros.nodes.common import RELIABLE_QOS, image_to_numpy, ns_to_stamp, stamp_to_ns
+    from softshape_ros.sim import SimRig
+    from test_rig_sim import small_camera_config
+
+    cfg = small_camera_config(tmp_path / 'rig.yaml')
+    probe = Probe(ros)
+    side = []
+    probe.node.create_subscription(Image, cfg.topics.camera('camera_image', 'side'),
+                                   lambda m: probe._add(side, m), RELIABLE_QOS)
+    mock = _mock(ros, free_run_hz=20.0, config_file=str(tmp_path / 'rig.yaml'))
+    ros.wait_for(lambda: probe.trig.get_subscription_count(), what='discovery')
+    probe.send([0.0, 6.0e4, 0.0, 0.0, 0.0, 0.0])
+    ros.wait_for(lambda: probe.last() is not None and abs(probe.last()[1] - 6.0e4) < 1.0,
+                 what='pressurised', timeout=10)
+    trig_ns = time.time_ns()
+    probe.trig.publish(probe.H(stamp=ns_to_stamp(trig_ns)))
+    n = 30
+    ros.wait_for(lambda: len(probe.images) >= n + 1 and len(side) >= n + 1, timeout=30,
+                 what=f'{n} free-run frames from each camera')
+    with probe.lock:
+        main, side_msgs = list(probe.images), list(side)
+    stamps = sorted(stamp_to_ns(m.header.stamp) for m in main)
+    assert trig_ns in stamps                                   # the trigger was answered
+    free = [s for s in stamps if s != trig_ns]
+    window_s = (free[-1] - free[0]) / 1e9
+    rate = (len(free) - 1) / window_s
+    assert 10.0 <= rate <= 21.0, rate                          # 20 Hz, a few skipped at most
+    assert {stamp_to_ns(m.header.stamp) for m in side_msgs} >= set(free[:n // 2])
+    # The picture is the shape at the current pressures.
+    rig = SimRig(cfg)
+    want = rig.snap([0.0, 6.0e4, 0.0, 0.0, 0.0, 0.0])['main']
+    got = image_to_numpy(main[-1])
+    assert np.abs(got.astype(int) - want).mean() < 0.5
+    assert mock.cameras.free_frames >= n and mock.cameras.solves < mock.cameras.free_frames

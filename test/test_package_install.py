@@ -377,7 +377,7 @@ ROSDEP_PYTHON_KEYS = {
     'tqdm': 'python3-tqdm', 'matplotlib': 'python3-matplotlib', 'torch': 'python3-torch',
     'rosbags': 'python3-rosbags-pip', 'onnxruntime': 'python3-onnxruntime-pip',
     'pytest': 'python3-pytest', 'hypothesis': 'python3-hypothesis',
-    'mcap': 'mcap-ros2-support', 'mcap_ros2': 'mcap-ros2-support',
+    'mcap': 'mcap-ros2-support', 'mcap_ros2': 'mcap-ros2-support', 'numba': 'python3-numba',
 }
 #: Imports with no rosdep key: pip-only, listed in requirements-jazzy.txt.
 PIP_ONLY = {'safetensors': 'safetensors', 'onnx': 'onnx', 'onnxscript': 'onnxscript',

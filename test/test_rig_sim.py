@@ -88,7 +88,8 @@ def test_collector_and_mock_hardware_two_scenes_five_actuations(ros, tmp_path):
                                   RELIABLE_QOS)
 
     conf = Parameter('config_file', value=str(tmp_path / 'rig.yaml'))
-    ros.add(MockHardware(parameter_overrides=[Parameter('tau_s', value=0.02), conf]))
+    ros.add(MockHardware(parameter_overrides=[Parameter('tau_s', value=0.02),
+                                              Parameter('free_run_hz', value=0.0), conf]))
     params = {'session': str(session), 'simulated': True, 'actuations': 5, 'rate_hz': 3.0,
               'settle_timeout_s': 1.5, 'settle_tolerance_pa': TOL_PA, 'seed': 11,
               'rest_delay_s': 0.3, 'max_fraction': 0.6}
@@ -97,8 +98,13 @@ def test_collector_and_mock_hardware_two_scenes_five_actuations(ros, tmp_path):
     ros.wait_for(col.done.is_set, timeout=90, what='the session')
     assert col.state == 'done', col.error
     n = 2 * (1 + 5)
-    ros.wait_for(lambda: all(len(images[c]) >= n and len(times[c]) >= n and len(infos[c]) >= n
-                             for c in cams), timeout=30, what='all images')
+
+    def every_trigger_answered():
+        with lock:
+            stamps = list(rec['trigger'])
+            return len(stamps) == n and all(s in where[c] for s in stamps for c in cams
+                                            for where in (images, times, infos))
+    ros.wait_for(every_trigger_answered, timeout=30, what='the images of every trigger')
 
     with lock:
         triggers, samples = list(rec['trigger']), list(rec['sample'])

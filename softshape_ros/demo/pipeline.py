@@ -130,7 +130,9 @@ def record(settings: DemoSettings, stage: Stage, cfg) -> dict:
     logs = root / 'logs'
     total = settings.scenes * (settings.actuations + 1)
     with RigClient(cfg) as client:
-        mock = NodeProcess('mock_hardware', {'seed': settings.seed}, log_dir=logs).start()
+        # Triggers only: a free-running camera would put 30 Hz frames into the bag.
+        mock = NodeProcess('mock_hardware', {'seed': settings.seed, 'free_run_hz': 0.0},
+                           log_dir=logs).start()
         recorder = NodeProcess('recorder', {'output': str(bag)}, log_dir=logs).start()
         procs = [mock, recorder]
         try:
@@ -181,7 +183,8 @@ def live(settings: DemoSettings, stage: Stage, cfg, checkpoint: Path) -> dict:
     limits = np.asarray(cfg.max_pressures_pa)
     rows = []
     with RigClient(cfg) as client:
-        mock = NodeProcess('mock_hardware', {'seed': settings.seed + 1}, name='mock_hardware',
+        mock = NodeProcess('mock_hardware', {'seed': settings.seed + 1, 'free_run_hz': 0.0},
+                           name='mock_hardware',
                            log_dir=logs).start()
         inference = NodeProcess('inference', {'model': str(checkpoint),
                                               'threads': settings.threads},

@@ -6,14 +6,15 @@ first-order regulators follow them and the measured pressures go out at ~100 Hz.
 trigger the pressures are sampled (and published, stamped with that instant), the
 simulator is solved at them in the current scene (from the latched /rig/scene) and both
 camera images go out under the trigger's stamp, with CameraInfo of the simulated pinhole
-cameras and a TimeReference saying when the pressures were sampled. Solving runs in a
-worker thread so the pressure loop keeps its rate; scene changes and triggers are applied
-in arrival order.
+cameras and a TimeReference saying when the pressures were sampled. Between triggers both
+cameras free-run at ``free_run_hz`` (0: triggers only), stamped with their capture instant,
+showing the current pressures' shape. The work loop is
+:class:`~softshape_ros.sim.stream.SimCameras` (core, no rclpy) in a worker thread, so the
+pressure loop keeps its rate; scene changes and triggers are applied in arrival order.
 """
 
 from __future__ import annotations
 
-import queue
 import threading
 import time
 
@@ -22,15 +23,16 @@ from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, JointState, TimeReference
 from std_msgs.msg import Float64MultiArray, Header, String
 
-from softshape_ros.pressure import CommandError, FirstOrderRegulator, check_command
 from softshape_ros.nodes.camera_trigger import camera_info_msg, time_reference_msg
 from softshape_ros.nodes.common import (IMAGE_QOS, LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS,
                                         declare_rig_config, main_wrapper, ns_to_stamp,
-                                        numpy_to_image)
+                                        numpy_to_image, stamp_to_ns)
 from softshape_ros.nodes.diagnostics import ERROR, OK, WARN, Updater, fill, topic_frequency
 from softshape_ros.nodes.parameters import Param, declare
+from softshape_ros.pressure import CommandError, FirstOrderRegulator, check_command
 from softshape_ros.scene import Scene, SceneError
-from softshape_ros.sim import SimRig, SolverError
+from softshape_ros.sim import SimRig
+from softshape_ros.sim.stream import Frames, SimCameras
 from softshape_ros.vision.camera_info import calibration_from_camera
 
 
@@ -48,6 +50,8 @@ PARAMETERS = [
           'dropped', (1, 10000)),
     Param('reliable_images', True, 'as camera_trigger: offered reliable, best-effort viewers '
           'match'),
+    Param('free_run_hz', 30.0, 'both cameras stream at this rate besides triggers (0 = '
+          'triggers only)', (0.0, 1000.0)),
 ]
 
 
@@ -62,7 +66,7 @@ class MockHardware(Node):
         self.pressure_noise_pa = p.pressure_noise_pa
         image_noise_std, seed = p.image_noise_std, p.seed
         self.command_timeout_s = p.command_timeout_s
-        max_queue = p.max_pending_triggers
+        max_queue, free_run_hz = p.max_pending_triggers, p.free_run_hz
 
         self.limits = self.cfg.max_pressures_pa
         self.regulator = FirstOrderRegulator(tau_s, len(self.limits))
@@ -70,7 +74,6 @@ class MockHardware(Node):
         self.rig = SimRig(self.cfg, seed=seed, image_noise_std=image_noise_std,
                           pressure_noise_pa=0.0)
         self.rig.set_scene(None)
-        self.scene = None
         self.calibrations = {n: calibration_from_camera(n, c) for n, c in self.cfg.cameras.items()}
 
         t = self.cfg.topics
@@ -92,16 +95,14 @@ class MockHardware(Node):
         self.rejected = 0
         self.clamped = 0
         self.watchdog_vents = 0
-        self.frames = 0
-        self.solver_errors = 0
-        self.dropped = 0
         self.last_error = ''
         self.last_command = time.monotonic()
         self._last_step = time.monotonic()
-        self.jobs: queue.Queue = queue.Queue(maxsize=max(1, max_queue))
-        self._stop = threading.Event()
-        self.worker = threading.Thread(target=self._work, name='mock-cameras', daemon=True)
-        self.worker.start()
+        self._lock = threading.Lock()           # the regulators: executor and camera thread
+        self.cameras = SimCameras(self.rig, self._publish_frames, self._sample_free_run,
+                                  free_run_hz, max_queue, self._log)
+        self.cameras.warm_up(np.zeros(len(self.limits)))
+        self.cameras.start()
         self.create_timer(1.0 / rate, self._tick)
         self.diagnostics = Updater(self)
         self.diagnostics.setHardwareID('simulated')
@@ -109,7 +110,15 @@ class MockHardware(Node):
         self.diagnostics.add('cameras', self._diagnose_cameras)
         self.measured_rate = topic_frequency(self.diagnostics, t.pressure_measured, rate)
         self.get_logger().info(f'simulated rig: regulators tau {tau_s:g} s, measured at '
-                               f'{rate:g} Hz, cameras {", ".join(self.cfg.camera_names)}')
+                               f'{rate:g} Hz, cameras {", ".join(self.cfg.camera_names)} '
+                               + (f'free-running at {free_run_hz:g} Hz + ' if free_run_hz
+                                  else '') + 'on trigger')
+
+    # Counters of the camera loop, as attributes (tests and diagnostics read them).
+    frames = property(lambda self: self.cameras.frames)
+    solver_errors = property(lambda self: self.cameras.solver_errors)
+    dropped = property(lambda self: self.cameras.dropped)
+    scene = property(lambda self: self.cameras.scene)
 
     # -- pressures --------------------------------------------------------------------------
     def _on_command(self, msg: Float64MultiArray) -> None:
@@ -124,18 +133,21 @@ class MockHardware(Node):
             self.clamped += 1
             self.get_logger().warning(f'command clamped to the limits at chambers '
                                       f'{list(checked.clamped)}')
-        self._advance()
-        self.regulator.setpoint = checked.pressures_pa.copy()
+        with self._lock:
+            self._advance()
+            self.regulator.setpoint = checked.pressures_pa.copy()
         self.last_command = time.monotonic()
 
     def _advance(self) -> np.ndarray:
+        """Step the regulators to now (hold ``_lock``)."""
         now = time.monotonic()
         p = self.regulator.step(now - self._last_step)
         self._last_step = now
         return p
 
     def _measure(self, stamp_ns: int) -> np.ndarray:
-        p = self._advance()
+        with self._lock:
+            p = self._advance()
         if self.pressure_noise_pa > 0:
             p = np.clip(p + self.rng.normal(0.0, self.pressure_noise_pa, p.shape), 0.0, None)
         msg = JointState()
@@ -149,7 +161,8 @@ class MockHardware(Node):
     def _tick(self) -> None:
         if (self.command_timeout_s > 0 and np.any(self.regulator.setpoint > 0)
                 and time.monotonic() - self.last_command > self.command_timeout_s):
-            self.regulator.setpoint[:] = 0.0
+            with self._lock:
+                self.regulator.setpoint[:] = 0.0
             self.watchdog_vents += 1
             self.get_logger().warning(f'no command for {self.command_timeout_s:g} s: venting')
         self._measure(self.get_clock().now().nanoseconds)
@@ -162,61 +175,29 @@ class MockHardware(Node):
             self.last_error = str(exc)
             self.get_logger().error(f'scene ignored, keeping the previous one: {exc}')
             return
-        self._enqueue(('scene', scene))
+        self.cameras.set_scene(scene)
 
     def _on_trigger(self, msg: Header) -> None:
         sampled_ns = self.get_clock().now().nanoseconds
         pressures = self._measure(sampled_ns)
-        self._enqueue(('snap', msg.stamp, pressures, sampled_ns))
+        self.cameras.trigger(stamp_to_ns(msg.stamp), pressures, sampled_ns)
 
-    def _enqueue(self, job) -> None:
-        try:
-            self.jobs.put_nowait(job)
-        except queue.Full:
-            self.dropped += 1
-            self.get_logger().error('simulator is behind: trigger dropped, no images for it')
+    def _sample_free_run(self) -> tuple:
+        """Return the regulators' pressures now (the shape, without sensor noise) and now."""
+        sampled_ns = self.get_clock().now().nanoseconds
+        with self._lock:
+            return self._advance(), sampled_ns
 
-    def _work(self) -> None:
-        while not self._stop.is_set():
-            try:
-                job = self.jobs.get(timeout=0.1)
-            except queue.Empty:
-                continue
-            if job[0] == 'scene':
-                try:
-                    self.rig.set_scene(job[1])
-                    self.scene = job[1]
-                    self.get_logger().info(f'scene {job[1].id}: {job[1].object}')
-                except Exception as exc:  # a scene the simulator cannot build: keep the old
-                    self.last_error = f'scene {job[1].id}: {exc}'
-                    self.get_logger().error(f'scene {job[1].id} not applied: {exc}')
-                continue
-            _, stamp, pressures, sampled_ns = job
-            try:
-                images = self.rig.snap(pressures)
-            except SolverError as exc:
-                self.solver_errors += 1
-                self.last_error = str(exc)
-                self.get_logger().error(f'simulator failed at {list(pressures)} Pa: {exc}; '
-                                        'no images for this trigger')
-                continue
-            except Exception as exc:  # keep the worker alive and say what happened
-                self.solver_errors += 1
-                self.last_error = f'{type(exc).__name__}: {exc}'
-                self.get_logger().error(f'snap failed: {self.last_error}; no images')
-                continue
-            try:
-                for cam in self.cfg.camera_names:
-                    frame_id = self.cfg.cameras[cam].frame_id
-                    self.pub_image[cam].publish(numpy_to_image(images[cam], stamp, frame_id))
-                    self.pub_info[cam].publish(
-                        camera_info_msg(self.calibrations[cam], stamp, frame_id))
-                    self.pub_time[cam].publish(
-                        time_reference_msg(stamp, sampled_ns, cam, frame_id))
-            except Exception as exc:  # e.g. publishing while the context shuts down
-                self.last_error = f'publish failed: {exc}'
-                continue
-            self.frames += 1
+    def _log(self, level: str, message: str) -> None:
+        getattr(self.get_logger(), level)(message)
+
+    def _publish_frames(self, f: Frames) -> None:
+        stamp = ns_to_stamp(f.stamp_ns)
+        for cam in self.cfg.camera_names:
+            frame_id = self.cfg.cameras[cam].frame_id
+            self.pub_image[cam].publish(numpy_to_image(f.images[cam], stamp, frame_id))
+            self.pub_info[cam].publish(camera_info_msg(self.calibrations[cam], stamp, frame_id))
+            self.pub_time[cam].publish(time_reference_msg(stamp, f.sampled_ns, cam, frame_id))
 
     def _diagnose_pressure(self, stat):
         bad = self.rejected or self.clamped
@@ -226,21 +207,26 @@ class MockHardware(Node):
                      'watchdog_vents': self.watchdog_vents}, 'simulated regulators')
 
     def _diagnose_cameras(self, stat):
-        if self.solver_errors or self.dropped:
+        c = self.cameras
+        if c.solver_errors or c.dropped:
             level = ERROR
         elif self.rejected or self.clamped:
             level = WARN
         else:
             level = OK
-        return fill(stat, level, self.last_error if level == ERROR else 'simulating',
-                    {'frames': self.frames, 'solver_errors': self.solver_errors,
-                     'dropped_triggers': self.dropped,
-                     'scene': self.scene.id if self.scene else None}, 'SimRig')
+        return fill(stat, level, c.last_error if level == ERROR else 'simulating',
+                    {'frames': c.frames, 'solver_errors': c.solver_errors,
+                     'dropped_triggers': c.dropped,
+                     'free_run_hz': c.free_run_hz, 'free_frames': c.free_frames,
+                     'skipped_free_frames': c.clock.skipped,
+                     'solves': c.solves, 'reused_shapes': c.reused,
+                     'trigger_to_image_ms': c.trigger_latency.summary(),
+                     'scene': c.scene.id if c.scene else None}, 'SimRig')
 
     def on_shutdown(self) -> None:
-        self._stop.set()
-        self.worker.join(timeout=10.0)
-        self.regulator.setpoint[:] = 0.0
+        self.cameras.stop()
+        with self._lock:
+            self.regulator.setpoint[:] = 0.0
 
 
 main = main_wrapper(MockHardware)

@@ -15,10 +15,19 @@ class PinholeCamera:
 
     def __init__(self, name, width, height, fx, fy, cx, cy, position, look_at, up, crop=None):
         self.name = name
+        if int(width) != width or int(height) != height or width < 1 or height < 1:
+            raise ValueError(f'camera {name}: resolution must be at least 1x1 pixels, got '
+                             f'{width}x{height}')
         self.width, self.height = int(width), int(height)
         self.fx, self.fy, self.cx, self.cy = float(fx), float(fy), float(cx), float(cy)
+        if not (self.fx > 0 and self.fy > 0 and np.isfinite([self.fx, self.fy, self.cx,
+                                                             self.cy]).all()):
+            raise ValueError(f'camera {name}: fx, fy must be finite and > 0, cx, cy finite')
         self.position = np.asarray(position, dtype=float)
         z = np.asarray(look_at, dtype=float) - self.position
+        if not (np.isfinite(self.position).all() and np.isfinite(z).all()
+                and np.linalg.norm(z) > 0):
+            raise ValueError(f'camera {name}: position and look_at must be finite and apart')
         z /= np.linalg.norm(z)
         x = np.cross(z, np.asarray(up, dtype=float))
         if np.linalg.norm(x) < 1e-9:
@@ -27,6 +36,9 @@ class PinholeCamera:
         y = np.cross(z, x)
         self.R = np.column_stack([x, y, z])        # camera axes in world (world <- camera)
         self.crop = list(crop) if crop is not None else [0, 0, self.width, self.height]
+        # The renderer's light in the camera frame: from the camera, a little from above.
+        light = -self.R[:, 2] + np.array([0.0, 0.0, 0.6])
+        self.head_light = self.R.T @ (light / np.linalg.norm(light))
 
     @classmethod
     def from_config(cls, name, cam) -> 'PinholeCamera':
@@ -49,6 +61,9 @@ class PinholeCamera:
         """
         x, y, w, h = region if region is not None else [0, 0, self.width, self.height]
         W, H = out_size if out_size is not None else (w, h)
+        if not (W >= 1 and H >= 1 and w > 0 and h > 0):
+            raise ValueError(f'camera {self.name}: cannot sample {list(region or [])} at '
+                             f'{W}x{H} pixels')
         du, dv = w / W, h / H
         return x + 0.5 * du - 0.5, du, y + 0.5 * dv - 0.5, dv, int(W), int(H)
 

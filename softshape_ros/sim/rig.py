@@ -19,7 +19,7 @@ from softshape_ros.scene import Scene
 from softshape_ros.sim.camera import PinholeCamera
 from softshape_ros.sim.contact import DEFAULT_SMOOTHING_M, DEFAULT_STIFFNESS_N_M, ContactModel
 from softshape_ros.sim.objects import obstacle_from_scene
-from softshape_ros.sim.render import render_view, to_uint8
+from softshape_ros.sim.render import RenderError, pack_objects, render_view
 from softshape_ros.sim.rod import Rod, RodSpec
 from softshape_ros.sim.statics import Actuator, SolverError, Statics
 
@@ -84,6 +84,7 @@ class SimRig:
         self.limits = np.asarray(cfg.max_pressures_pa, dtype=float)
         self.scene = None
         self.obstacles = []
+        self._render_objects = {n: pack_objects(cam, []) for n, cam in self.cameras.items()}
         self.contact = None
         self._q = None
         self._free = None           # (q, assembly, pressures) of the last free equilibrium
@@ -97,6 +98,12 @@ class SimRig:
         self.scene = scene
         obj = obstacle_from_scene(scene)
         self.obstacles = [obj] if obj is not None else []
+        self._render_objects = {}
+        for name, cam in self.cameras.items():
+            try:
+                self._render_objects[name] = pack_objects(cam, self.obstacles)
+            except RenderError as exc:    # e.g. a camera inside the object: solving still works
+                self._render_objects[name] = exc
         self.contact = (ContactModel(self.obstacles, *self.contact_args)
                         if self.obstacles and self.contact_on else None)
         self._q = None
@@ -228,13 +235,22 @@ class SimRig:
 
     def _noisy(self, img: np.ndarray) -> np.ndarray:
         if self.image_noise_std > 0:
-            img = img + self.rng.normal(0.0, self.image_noise_std / 255.0, img.shape)
-        return to_uint8(img)
+            noisy = img + self.rng.normal(0.0, self.image_noise_std, img.shape)
+            img = np.clip(np.rint(noisy), 0, 255).astype(np.uint8)
+        return img
+
+    def check_views(self, cameras=None) -> None:
+        """Raise the RenderError that keeps a camera from seeing this scene (e.g. inside it)."""
+        for name in cameras if cameras is not None else self.cameras:
+            if isinstance(self._render_objects.get(name), RenderError):
+                raise self._render_objects[name]
 
     def render(self, state: SimState) -> dict:
         """Return {camera: H x W x 3 uint8 RGB} at each camera's configured resolution."""
+        self.check_views()
         return {name: self._noisy(render_view(cam, state.backbone_m, state.radii_m,
-                                              self.obstacles))
+                                              self.obstacles,
+                                              objects=self._render_objects[name]))
                 for name, cam in self.cameras.items()}
 
     def render_inputs(self, state: SimState, size: int = 64, gray: bool = True,
@@ -248,13 +264,22 @@ class SimRig:
         result as preprocessing a full-resolution frame, far faster (test_sim_render).
         """
         from softshape_ros.vision.preprocess import preprocess
+        if int(size) != size or size < 1 or int(supersample) != supersample or supersample < 1:
+            raise RenderError(f'size and supersample must be integers >= 1, got {size!r} and '
+                              f'{supersample!r}')
+        names = list(cameras) if cameras is not None else list(self.cameras)
+        unknown = [n for n in names if n not in self.cameras]
+        if unknown:
+            raise RenderError(f'unknown camera(s) {unknown}; the rig has {list(self.cameras)}')
+        self.check_views(names)
         out = {}
-        n = size * supersample
-        for name in cameras or self.cameras:
+        n = int(size) * int(supersample)
+        for name in names:
             cam = self.cameras[name]
-            img = self._noisy(render_view(cam, state.backbone_m, state.radii_m,
-                                          self.obstacles, cam.grid(cam.crop, (n, n))))
-            out[name] = preprocess(img, [0, 0, n, n], size, gray)
+            img = self._noisy(render_view(cam, state.backbone_m, state.radii_m, self.obstacles,
+                                          cam.grid(cam.crop, (n, n)),
+                                          objects=self._render_objects[name]))
+            out[name] = preprocess(img, [0, 0, n, n], int(size), gray)
         return out
 
     def snap(self, pressures_pa) -> dict:
