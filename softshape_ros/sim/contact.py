@@ -30,7 +30,6 @@ from dataclasses import dataclass, replace
 from typing import Protocol
 
 import numpy as np
-from scipy.special import spence
 
 from softshape_ros.sim import kernels
 from softshape_ros.sim.objects import ObstacleSet
@@ -39,7 +38,9 @@ from softshape_ros.sim.rod import Kinematics, Rod
 DEFAULT_STIFFNESS_N_M = 2.0e4
 DEFAULT_SMOOTHING_M = 2.0e-5
 STIFFENING_DEPTH_M = 2.0e-4     # p0: the penalty doubles its stiffness at 0.2 mm
-NEAR_M = 3e-3                   # critical points of gaps below this are refined
+# Critical points are refined where a sample's gap is below this: one within the cutoff
+# (0.6 mm) has a sample within its bracket (<= 0.53 mm of backbone, slope <= 1) below 1.13 mm.
+NEAR_M = 1.5e-3
 SAMPLES_PER_INTERVAL = 8        # gap slope samples per node interval (<= 0.6 mm apart)
 CUTOFF_SMOOTHINGS = 30.0        # gaps beyond 30 smoothing lengths carry no force (< 1e-13 k delta)
 # A Newton step may press a free node (or a lifted contact) this deep, linearised: one
@@ -73,18 +74,12 @@ class ContactResult:
     """
     What a contact law returns for one shape: its loads on the rod and the step's limits.
 
-    Arrays run over the contact points (C, ...); the step rows over the linearised gaps a
-    Newton step must keep, ``step_rows @ dq >= step_lower``.
+    Per-contact numbers are the columns of ``rows`` (C, ...), exposed as named arrays; the
+    step rows are the linearised gaps a Newton step must keep, ``step_rows @ dq >=
+    step_lower``.
     """
 
-    s_m: np.ndarray                 # (C,) arc lengths
-    obstacle: np.ndarray            # (C,) int
-    sign: np.ndarray                # (C,) +1 a gap minimum, -1 a ridge (subtracted)
-    gap_m: np.ndarray               # (C,)
-    backbone_m: np.ndarray          # (C, 3)
-    normal: np.ndarray              # (C, 3) out of the object
-    force_n: np.ndarray             # (C, 3) world force on the robot
-    radius_m: np.ndarray            # (C,) tube radius there
+    rows: np.ndarray                # (C, kernels.C_COLS) see the properties
     poses: np.ndarray               # (C, 4, 4) rod frames at the contacts
     jacobians: np.ndarray           # (C, 6, n) body Jacobians there
     generalised_force: np.ndarray   # (n,) J^T W of the forces
@@ -95,13 +90,48 @@ class ContactResult:
     node_gaps_m: np.ndarray         # (O, N) gap of the tube at each node, per obstacle
 
     @property
+    def s_m(self) -> np.ndarray:
+        return self.rows[:, kernels.C_X]
+
+    @property
+    def obstacle(self) -> np.ndarray:
+        return self.rows[:, kernels.C_OBJ].astype(int)
+
+    @property
+    def sign(self) -> np.ndarray:
+        """Return +1 for a gap minimum, -1 for a ridge (its force is subtracted)."""
+        return self.rows[:, kernels.C_SIGN]
+
+    @property
+    def gap_m(self) -> np.ndarray:
+        return self.rows[:, kernels.C_GAP]
+
+    @property
+    def backbone_m(self) -> np.ndarray:
+        return self.rows[:, kernels.C_P:kernels.C_P + 3]
+
+    @property
+    def normal(self) -> np.ndarray:
+        """Return the unit normals out of the object (C, 3)."""
+        return self.rows[:, kernels.C_N:kernels.C_N + 3]
+
+    @property
+    def force_n(self) -> np.ndarray:
+        """Return the world forces on the robot (C, 3)."""
+        return self.rows[:, kernels.C_F:kernels.C_F + 3]
+
+    @property
+    def radius_m(self) -> np.ndarray:
+        return self.rows[:, kernels.C_RAD]
+
+    @property
     def contacts(self) -> list[Contact]:
         """Return the contacts as records (for SimState and JSON)."""
-        return [Contact(float(self.s_m[i]), self.backbone_m[i].copy(),
-                        self.backbone_m[i] - self.radius_m[i] * self.normal[i],
-                        self.normal[i].copy(), self.force_n[i].copy(), float(self.gap_m[i]),
-                        int(self.obstacle[i]), bool(self.sign[i] < 0))
-                for i in range(len(self.s_m))]
+        p, n = self.backbone_m, self.normal
+        return [Contact(float(r[kernels.C_X]), p[i].copy(), p[i] - r[kernels.C_RAD] * n[i],
+                        n[i].copy(), self.force_n[i].copy(), float(r[kernels.C_GAP]),
+                        int(r[kernels.C_OBJ]), bool(r[kernels.C_SIGN] < 0))
+                for i, r in enumerate(self.rows)]
 
     @property
     def max_penetration_m(self) -> float:
@@ -110,7 +140,7 @@ class ContactResult:
     @property
     def any(self) -> bool:
         """Whether any contact point lies within the penalty's reach."""
-        return len(self.s_m) > 0
+        return len(self.rows) > 0
 
 
 class ContactLaw(Protocol):
@@ -118,20 +148,6 @@ class ContactLaw(Protocol):
 
     def evaluate(self, rod: Rod, kin: Kinematics) -> ContactResult:
         """Return the contact points, loads and step limits of the shape ``kin``."""
-
-
-def _softplus(x):
-    return np.where(x > 30, x, np.log1p(np.exp(np.minimum(x, 30))))
-
-
-def penalty_energy(gap, k, delta):
-    """Return the penalty potential int_gap^inf lambda: k delta^2 (-Li2(-e^z)), z = -gap/delta."""
-    z = -np.asarray(gap, dtype=float) / delta
-    big = z > 30
-    zs = np.where(big, 0.0, z)
-    small = -spence(1.0 + np.exp(zs))
-    large = z ** 2 / 2 + np.pi ** 2 / 6 - np.exp(-np.where(big, z, 30.0))
-    return k * delta ** 2 * np.where(big, large, small)
 
 
 @dataclass(frozen=True)
@@ -169,11 +185,8 @@ class PenaltyContact:
         penalty at every gap minimum minus that at every interior gap maximum.
         """
         ob = self.obstacles
-        (X, obj, sign, gap, p, nrm, f, rad, g, J, Q, Kc, A, lo,
-         node_gaps) = kernels.penalty_contacts(rod.tables, kin.q, kin.g, kin.J, ob.kinds,
-                                               ob.rows, ob.poses, self._params())
-        # Potential of the stiffening part taken unsmoothed (it only serves as a merit).
-        e = penalty_energy(gap, self.stiffness, self.smoothing) \
-            + self.stiffness * np.maximum(0.0, -gap) ** 3 / (3 * STIFFENING_DEPTH_M)
-        return ContactResult(X, obj, sign, gap, p, nrm, f, rad, g, J, Q, Kc,
-                             float(sign @ e), A, lo, node_gaps)
+        rows, g, J, Q, Kc, A, lo, node_gaps = kernels.penalty_contacts(
+            rod.tables, kin.q, kin.g, kin.J, ob.kinds, ob.rows, ob.poses, self._params())
+        energy = kernels.penalty_energy(rows, self.stiffness, self.smoothing,
+                                        STIFFENING_DEPTH_M)
+        return ContactResult(rows, g, J, Q, Kc, energy, A, lo, node_gaps)

@@ -11,10 +11,13 @@ would go on running the helper's old code after an edit. The Python modules besi
 (``rod``, ``objects``, ``contact``, ``statics``) build the tables read here and hold the logic
 a reader follows; these functions are the arithmetic.
 
-Conventions: twists and wrenches are 6-vectors with the angular part first (SoRoSim order),
-poses 4x4. The strain basis is sparse (a point of segment ``s`` touches only that segment's
-columns of ``q``), so the kernels loop over (component, mode) pairs instead of multiplying
-dense ``Phi`` matrices. No kernel allocates inside its per-point loops.
+Style, for compile time and speed alike: plain loops over small arrays (no fancy indexing,
+no ``@``, no whole-array arithmetic: each numpy feature used here costs seconds of
+compilation), and hot helpers that take scalars and few arrays (every array passed to a
+function that is not inlined costs a reference-count pair, ~10 ns). Twists and wrenches are
+6-vectors with the angular part first (SoRoSim order), poses 4x4. The strain basis is sparse
+(a point of segment ``s`` touches only that segment's columns of ``q``), so the kernels loop
+over (component, mode) pairs instead of multiplying dense ``Phi`` matrices.
 """
 
 from __future__ import annotations
@@ -31,6 +34,11 @@ def _kernel(fn):
     return njit(cache=True, error_model='numpy')(fn)
 
 
+def _inline(fn):
+    """Compile ``fn`` into each caller (the hot Magnus step: no call overhead)."""
+    return njit(cache=True, error_model='numpy', inline='always')(fn)
+
+
 SMALL_ANGLE2 = 1e-4     # exp/dexp coefficients from their series below 0.01 rad (error < 1e-17)
 Z1 = 0.5 - math.sqrt(3.0) / 6.0      # Zanna points of the 4th-order Magnus step
 Z2 = 0.5 + math.sqrt(3.0) / 6.0
@@ -41,15 +49,23 @@ CURVE_FLOOR = 1e-12     # |d2 gap / dX2| below this: no Newton step on the conta
 SLIDE_FLOOR = 1e-9      # ... below this: the contact point's sliding term is left out
 ABSCISSA_STEP_M = 1e-10  # a Newton step on the contact abscissa this short has converged
 BRACKET_M = 1e-13       # a bracket this narrow has converged
+REFINE_STEPS = 60       # steps on a contact abscissa at most (60 halvings: 1e-18 m)
 TIP_GUARD_M = 1e-12     # a contact this close to the tip is the tip (it does not slide)
-FAR_CUT_SLACK = 1.0     # sample an interval only if its nodes' gap minus this x its length is near
+# An interval is sampled unless the cubic through its nodes' gaps and gap slopes stays this
+# far beyond ``near``: on smooth profiles that cubic is within microns of the gap, and the
+# margin covers a prism's edges (where the gap is only once differentiable).
+CULL_MARGIN_M = 1e-3
 DIST_FLOOR = 1e-12      # distances below this in a curvature denominator (m)
+NORM_FLOOR = 1e-300     # vectors shorter than this normalise to zero
+LOCATE_EPS_M = 1e-15    # a point load this close past a segment start belongs to it
 
 # Obstacle kinds and the layout of their parameter rows (objects.py packs them).
 PLANE, SPHERE, CYLINDER, RING, PRISM = 0, 1, 2, 3, 4
 PRISM_NORMALS, PRISM_OFFSETS, PRISM_EA, PRISM_EAB = 0, 18, 24, 60
 PRISM_EAB2, PRISM_EA_EAB, PRISM_EA2, PRISM_FPROJ = 96, 108, 120, 132
 PRISM_FA_AB, PRISM_FN, PRISM_FN_A, PRISM_PARAMS = 168, 180, 198, 204
+# Columns of penalty_contacts' per-contact rows.
+C_X, C_OBJ, C_SIGN, C_GAP, C_P, C_N, C_F, C_RAD, C_COLS = 0, 1, 2, 3, 4, 7, 10, 13, 14
 
 
 class RodTables(NamedTuple):
@@ -76,44 +92,58 @@ class RodTables(NamedTuple):
 
 # -- small dense algebra -------------------------------------------------------------------
 @_kernel
-def _matmul(A, B, out):
-    """Write ``A @ B`` into ``out`` (small matrices)."""
-    for i in range(A.shape[0]):
-        for j in range(B.shape[1]):
-            s = 0.0
-            for k in range(A.shape[1]):
-                s += A[i, k] * B[k, j]
-            out[i, j] = s
+def abs_max(a):
+    """Return max |a_i| (0 for an empty array, NaN if any is NaN)."""
+    m = 0.0
+    for i in range(a.shape[0]):
+        v = abs(a[i])
+        if v != v:
+            return v
+        m = max(m, v)
+    return m
 
 
 @_kernel
-def _cross(a, b, out):
-    out[0] = a[1] * b[2] - a[2] * b[1]
-    out[1] = a[2] * b[0] - a[0] * b[2]
-    out[2] = a[0] * b[1] - a[1] * b[0]
+def _dot(a, b):
+    s = 0.0
+    for i in range(a.shape[0]):
+        s += a[i] * b[i]
+    return s
 
 
 @_kernel
-def _skew(w, out):
-    out[0, 0], out[0, 1], out[0, 2] = 0.0, -w[2], w[1]
-    out[1, 0], out[1, 1], out[1, 2] = w[2], 0.0, -w[0]
-    out[2, 0], out[2, 1], out[2, 2] = -w[1], w[0], 0.0
+def _bisect_right(a, x):
+    """Return the number of entries of the sorted array a that are <= x."""
+    lo, hi = 0, a.shape[0]
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if x < a[mid]:
+            hi = mid
+        else:
+            lo = mid + 1
+    return lo
 
 
 @_kernel
-def _ad(x, out):
-    """Write the 6x6 adjoint ``ad_x`` (``ad_x y = [x, y]``) into ``out``."""
-    out[:, :] = 0.0
-    _skew(x[:3], out[:3, :3])
-    _skew(x[:3], out[3:, 3:])
-    _skew(x[3:], out[3:, :3])
+def _bisect_left(a, x):
+    """Return the number of entries of the sorted array a that are < x."""
+    lo, hi = 0, a.shape[0]
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if a[mid] < x:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
 
 
 @_kernel
 def cholesky(H, L):
     """Write the lower Cholesky factor of ``H`` into ``L``; return False if H is not PD."""
     n = H.shape[0]
-    L[:, :] = 0.0
+    for i in range(n):
+        for j in range(n):
+            L[i, j] = 0.0
     for j in range(n):
         s = H[j, j]
         for k in range(j):
@@ -132,23 +162,25 @@ def cholesky(H, L):
 
 @_kernel
 def cho_solve(L, b):
-    """Return ``x`` with ``L L^T x = b`` (b: (n,) or (n, m))."""
-    x = b.copy()
+    """Return ``x`` with ``L L^T x = b``."""
     n = L.shape[0]
+    x = np.empty(n)
     for i in range(n):                      # L y = b
+        s = b[i]
         for k in range(i):
-            x[i] -= L[i, k] * x[k]
-        x[i] /= L[i, i]
+            s -= L[i, k] * x[k]
+        x[i] = s / L[i, i]
     for i in range(n - 1, -1, -1):          # L^T x = y
+        s = x[i]
         for k in range(i + 1, n):
-            x[i] -= L[k, i] * x[k]
-        x[i] /= L[i, i]
+            s -= L[k, i] * x[k]
+        x[i] = s / L[i, i]
     return x
 
 
 @_kernel
 def _lu_solve(A, b):
-    """Return (x, ok) with ``A x = b`` by LU with partial pivoting; ok False if singular."""
+    """Return (x, ok) with ``A x = b`` (LU, partial pivoting); ok False if A is singular."""
     n = A.shape[0]
     M = A.copy()
     x = b.copy()
@@ -206,35 +238,50 @@ def project_step(dq, L, A, lo, max_active):
     would pull (negative multiplier) leaves it. Should the active set run out, the step is
     scaled back until every constraint holds.
     """
-    m = lo.shape[0]
-    if m == 0:
-        return dq
-    dq0 = dq
+    m, n = lo.shape[0], dq.shape[0]
+    dq0 = dq.copy()
+    dq = dq.copy()
     act = np.empty(max_active, dtype=np.int64)
+    Y = np.empty((max_active, n))                         # rows: H^-1 a_i
     n_act = 0
     for _ in range(max_active):
-        viol = A @ dq - lo
-        for a in range(n_act):
-            viol[act[a]] = np.inf
-        i = int(np.argmin(viol))
-        if viol[i] >= QP_ROUNDOFF:
+        best, i_best = np.inf, -1
+        for r in range(m):
+            skip = False
+            for a in range(n_act):
+                skip = skip or act[a] == r
+            if skip:
+                continue
+            v = _dot(A[r], dq) - lo[r]
+            if v < best:
+                best, i_best = v, r
+        if i_best < 0 or best >= QP_ROUNDOFF:
             return dq
-        act[n_act] = i
+        act[n_act] = i_best
         n_act += 1
         solved = False
         while n_act > 0:
-            Aw = np.empty((n_act, A.shape[1]))
+            for a in range(n_act):
+                Y[a] = cho_solve(L, A[act[a]])
+            G = np.empty((n_act, n_act))
             rhs = np.empty(n_act)
             for a in range(n_act):
-                Aw[a] = A[act[a]]
-            Y = cho_solve(L, Aw.T.copy())                       # H^-1 A_W^T
-            rhs = lo[act[:n_act]] - Aw @ dq0
-            multipliers, ok = _lu_solve(Aw @ Y, rhs)
+                rhs[a] = lo[act[a]] - _dot(A[act[a]], dq0)
+                for b in range(n_act):
+                    G[a, b] = _dot(A[act[a]], Y[b])
+            multipliers, ok = _lu_solve(G, rhs)
             if not ok:
                 n_act -= 1
                 continue
-            if np.all(multipliers >= 0.0):
-                dq = dq0 + Y @ multipliers
+            pulling = False
+            for a in range(n_act):
+                pulling = pulling or multipliers[a] < 0.0
+            if not pulling:
+                for i in range(n):
+                    s = dq0[i]
+                    for a in range(n_act):
+                        s += Y[a, i] * multipliers[a]
+                    dq[i] = s
                 solved = True
                 break
             keep = 0
@@ -244,118 +291,117 @@ def project_step(dq, L, A, lo, max_active):
                     keep += 1
             n_act = keep
         if not solved:
-            dq = dq0
-    rate = A @ dq
+            for i in range(n):
+                dq[i] = dq0[i]
     scale = 1.0
     for r in range(m):
-        if rate[r] < lo[r]:
-            scale = min(scale, lo[r] / rate[r])
+        rate = _dot(A[r], dq)
+        if rate < lo[r]:
+            scale = min(scale, lo[r] / rate)
     if scale < 1.0:
-        dq = dq * scale
+        for i in range(n):
+            dq[i] *= scale
     return dq
 
 
-# -- SE(3) ---------------------------------------------------------------------------------
+# -- SE(3) and the strain basis -----------------------------------------------------------
 @_kernel
-def _coefficients(th2, c):
-    """Fill c[0:3] with exp's (a, b, c) and c[3:7] with dexp's (f1..f4) of angle^2 ``th2``."""
+def _coefficients(th2):
+    """Return exp's (a, b, c) and dexp's (f1..f4) coefficients of angle^2 ``th2``."""
     if th2 < SMALL_ANGLE2:
         th4 = th2 * th2
-        c[0] = 1 - th2 / 6 + th4 / 120
-        c[1] = 0.5 - th2 / 24 + th4 / 720
-        c[2] = 1 / 6 - th2 / 120 + th4 / 5040
-        c[3] = -(0.5 - th4 / 720)
-        c[4] = 1 / 6 - th4 / 5040
-        c[5] = -(1 / 24 - th2 / 360 + th4 / 13440)
-        c[6] = 1 / 120 - th2 / 2520 + th4 / 120960
-        return
+        return (1 - th2 / 6 + th4 / 120, 0.5 - th2 / 24 + th4 / 720,
+                1 / 6 - th2 / 120 + th4 / 5040, -(0.5 - th4 / 720), 1 / 6 - th4 / 5040,
+                -(1 / 24 - th2 / 360 + th4 / 13440), 1 / 120 - th2 / 2520 + th4 / 120960)
     t = math.sqrt(th2)
     s, co = math.sin(t), math.cos(t)
     t2 = t * t
     t3 = t2 * t
-    c[0] = s / t
-    c[1] = (1 - co) / t2
-    c[2] = (t - s) / t3
     ts, tc = t * s, t * co
-    c[3] = -(4 - 4 * co - ts) / (2 * t2)
-    c[4] = (4 * t - 5 * s + tc) / (2 * t3)
-    c[5] = -(2 - 2 * co - ts) / (2 * t2 * t2)
-    c[6] = (2 * t - 3 * s + tc) / (2 * t3 * t2)
-
-
-class _Work(NamedTuple):
-    """Scratch arrays of one Magnus step (allocated once per kernel call)."""
-
-    P1: np.ndarray       # (nm,) basis values at the Zanna points
-    P2: np.ndarray
-    x1: np.ndarray       # (6,) strains there
-    x2: np.ndarray
-    om: np.ndarray       # (6,) Magnus twist
-    coef: np.ndarray     # (7,) exp/dexp coefficients
-    W: np.ndarray        # (3, 3)
-    W2: np.ndarray
-    E: np.ndarray        # (4, 4) the step's pose
-    A: np.ndarray        # (6, 6) powers of ad(om), then T = dexp(om)
-    A2: np.ndarray
-    A3: np.ndarray
-    A4: np.ndarray
-    T: np.ndarray
-    S: np.ndarray        # (6, D) d om / dq on the segment's columns
-    TS: np.ndarray       # (6, D)
-    ad1: np.ndarray      # (6, 6)
-    ad2: np.ndarray
-    br: np.ndarray       # (6,) the Lie bracket [x1, x2]
-    G: np.ndarray        # (4, 4) a node pose times E
-    t: np.ndarray        # (3,) tangent, curvature x nu
-    kv: np.ndarray
+    return (s / t, (1 - co) / t2, (t - s) / t3, -(4 - 4 * co - ts) / (2 * t2),
+            (4 * t - 5 * s + tc) / (2 * t3), -(2 - 2 * co - ts) / (2 * t2 * t2),
+            (2 * t - 3 * s + tc) / (2 * t3 * t2))
 
 
 @_kernel
-def _work(n_modes, n_cols):
-    return _Work(np.empty(n_modes), np.empty(n_modes), np.empty(6), np.empty(6), np.empty(6),
-                 np.empty(7), np.empty((3, 3)), np.empty((3, 3)), np.empty((4, 4)),
-                 np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 6)),
-                 np.empty((6, 6)), np.empty((6, n_cols)), np.empty((6, n_cols)),
-                 np.empty((6, 6)), np.empty((6, 6)), np.empty(6), np.empty((4, 4)),
-                 np.empty(3), np.empty(3))
+def _exp_into(om, E):
+    """
+    Write exp(om) (4x4, Rodrigues) into E; return (th2, f1, f2, f3, f4) for its tangent.
+
+    ``W^2 = w w^T - th^2 I``, so ``R = I + a W + b W^2``, ``p = v + b w x v + c W^2 v``.
+    """
+    w0, w1, w2, v0, v1, v2 = om[0], om[1], om[2], om[3], om[4], om[5]
+    th2 = w0 * w0 + w1 * w1 + w2 * w2
+    a, b, c, f1, f2, f3, f4 = _coefficients(th2)
+    E[0, 0] = 1.0 + b * (w0 * w0 - th2)
+    E[0, 1] = -a * w2 + b * (w0 * w1)
+    E[0, 2] = a * w1 + b * (w0 * w2)
+    E[1, 0] = a * w2 + b * (w1 * w0)
+    E[1, 1] = 1.0 + b * (w1 * w1 - th2)
+    E[1, 2] = -a * w0 + b * (w1 * w2)
+    E[2, 0] = -a * w1 + b * (w2 * w0)
+    E[2, 1] = a * w0 + b * (w2 * w1)
+    E[2, 2] = 1.0 + b * (w2 * w2 - th2)
+    wv = w0 * v0 + w1 * v1 + w2 * v2
+    E[0, 3] = v0 + b * (w1 * v2 - w2 * v1) + c * (w0 * wv - th2 * v0)
+    E[1, 3] = v1 + b * (w2 * v0 - w0 * v2) + c * (w1 * wv - th2 * v1)
+    E[2, 3] = v2 + b * (w0 * v1 - w1 * v0) + c * (w2 * wv - th2 * v2)
+    E[3, 0], E[3, 1], E[3, 2], E[3, 3] = 0.0, 0.0, 0.0, 1.0
+    return th2, f1, f2, f3, f4
 
 
 @_kernel
-def _exp(x, w):
-    """Write exp(x) into w.E (Rodrigues) and leave the coefficients in w.coef."""
-    _coefficients(x[0] * x[0] + x[1] * x[1] + x[2] * x[2], w.coef)
-    a, b, c = w.coef[0], w.coef[1], w.coef[2]
-    _skew(x[:3], w.W)
-    _matmul(w.W, w.W, w.W2)
-    E = w.E
+def _skew_into(x, o, S):
+    """Write the cross-product matrix of (x[o], x[o + 1], x[o + 2]) into S."""
+    S[0, 0], S[0, 1], S[0, 2] = 0.0, -x[o + 2], x[o + 1]
+    S[1, 0], S[1, 1], S[1, 2] = x[o + 2], 0.0, -x[o]
+    S[2, 0], S[2, 1], S[2, 2] = -x[o + 1], x[o], 0.0
+
+
+@_kernel
+def _dexp_blocks(om, th2, f1, f2, f3, f4, M):
+    """
+    Write the blocks of T(om) = [[TR, 0], [TV, TR]] into M[6], M[7].
+
+    T = I + f1 ad + f2 ad^2 + f3 ad^3 + f4 ad^4 with ad^k = [[W^k, 0], [B_k, W^k]],
+    B_1 = V, B_{k+1} = V W^k + W B_k (W, V the cross-product matrices of the angular and
+    linear parts) and W^3 = -th^2 W. M: (8, 3, 3), M[0:6] scratch.
+    """
+    W, V, W2, B2, B3, B4 = M[0], M[1], M[2], M[3], M[4], M[5]
+    TR, TV = M[6], M[7]
+    _skew_into(om, 0, W)
+    _skew_into(om, 3, V)
     for i in range(3):
         for j in range(3):
-            E[i, j] = a * w.W[i, j] + b * w.W2[i, j]
-        E[i, i] += 1.0
-        s = 0.0
+            s = 0.0
+            t = 0.0
+            for k in range(3):
+                s += W[i, k] * W[k, j]
+                t += V[i, k] * W[k, j] + W[i, k] * V[k, j]
+            W2[i, j] = s
+            B2[i, j] = t
+    for i in range(3):
         for j in range(3):
-            s += (b * w.W[i, j] + c * w.W2[i, j]) * x[3 + j]
-        E[i, 3] = x[3 + i] + s
-    E[3, 0], E[3, 1], E[3, 2], E[3, 3] = 0.0, 0.0, 0.0, 1.0
-
-
-@_kernel
-def _dexp(x, w):
-    """Write the tangent operator T(x) = I + f1 ad + f2 ad^2 + f3 ad^3 + f4 ad^4 into w.T."""
-    _ad(x, w.A)
-    _matmul(w.A, w.A, w.A2)
-    _matmul(w.A2, w.A, w.A3)
-    _matmul(w.A2, w.A2, w.A4)
-    f1, f2, f3, f4 = w.coef[3], w.coef[4], w.coef[5], w.coef[6]
-    for i in range(6):
-        for j in range(6):
-            w.T[i, j] = ((((1.0 if i == j else 0.0) + f1 * w.A[i, j]) + f2 * w.A2[i, j])
-                         + f3 * w.A3[i, j]) + f4 * w.A4[i, j]
+            s = 0.0
+            for k in range(3):
+                s += V[i, k] * W2[k, j] + W[i, k] * B2[k, j]
+            B3[i, j] = s
+    for i in range(3):
+        for j in range(3):
+            s = 0.0
+            for k in range(3):
+                s += -th2 * (V[i, k] * W[k, j]) + W[i, k] * B3[k, j]
+            B4[i, j] = s
+    g1, g2 = f1 - th2 * f3, f2 - th2 * f4
+    for i in range(3):
+        for j in range(3):
+            TR[i, j] = (1.0 if i == j else 0.0) + g1 * W[i, j] + g2 * W2[i, j]
+            TV[i, j] = f1 * V[i, j] + f2 * B2[i, j] + f3 * B3[i, j] + f4 * B4[i, j]
 
 
 @_kernel
 def _pose_mul(g, E, out):
-    """Write the pose product ``g @ E`` into ``out``."""
+    """Write the pose product ``g @ E`` into ``out`` (out must not alias E)."""
     for i in range(3):
         for j in range(4):
             s = g[i, 3] if j == 3 else 0.0
@@ -368,9 +414,9 @@ def _pose_mul(g, E, out):
 @_kernel
 def _adinv_apply(E, J, out, n_cols):
     """Write ``Ad_{E^-1} J`` (first ``n_cols`` columns) into ``out``: twists into E's frame."""
+    p0, p1, p2 = E[0, 3], E[1, 3], E[2, 3]
     for col in range(n_cols):
         w0, w1, w2 = J[0, col], J[1, col], J[2, col]
-        p0, p1, p2 = E[0, 3], E[1, 3], E[2, 3]
         v0 = J[3, col] - (p1 * w2 - p2 * w1)
         v1 = J[4, col] - (p2 * w0 - p0 * w2)
         v2 = J[5, col] - (p0 * w1 - p1 * w0)
@@ -379,77 +425,129 @@ def _adinv_apply(E, J, out, n_cols):
             out[3 + i, col] = E[0, i] * v0 + E[1, i] * v1 + E[2, i] * v2
 
 
-# -- strain basis and kinematics -----------------------------------------------------------
 @_kernel
-def _legendre(y, out):
-    """Fill ``out`` with the Legendre polynomials P_0..P_{len-1} at y."""
-    out[0] = 1.0
-    if out.shape[0] > 1:
-        out[1] = y
-    for j in range(2, out.shape[0]):
-        out[j] = ((2 * j - 1) * y * out[j - 1] - (j - 1) * out[j - 2]) / j
+def _legendre(y, P, r):
+    """Fill row r of P with the Legendre polynomials P_0..P_{nm-1} at y."""
+    nm = P.shape[1]
+    P[r, 0] = 1.0
+    if nm > 1:
+        P[r, 1] = y
+    for j in range(2, nm):
+        P[r, j] = ((2 * j - 1) * y * P[r, j - 1] - (j - 1) * P[r, j - 2]) / j
 
 
 @_kernel
-def _strain(tab, q, seg, x, P, xi):
-    """Fill P with the basis at local abscissa x of segment ``seg`` and xi with the strain."""
-    _legendre(2.0 * x / tab.seg_len[seg] - 1.0, P)
-    nm = tab.n_modes
-    col = seg * nm * tab.comps.shape[0]
-    xi[:] = 0.0
-    for ci in range(tab.comps.shape[0]):
+def _strain_at(P, r, q, col0, comps, xi):
+    """Fill xi with the strain from the basis values in row r of P (segment columns col0..)."""
+    nm = P.shape[1]
+    xi[0], xi[1], xi[2], xi[3], xi[4], xi[5] = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    for ci in range(comps.shape[0]):
         s = 0.0
         for j in range(nm):
-            s += P[j] * q[col + ci * nm + j]
-        xi[tab.comps[ci]] = s
+            s += P[r, j] * q[col0 + ci * nm + j]
+        xi[comps[ci]] = s
     xi[3] += 1.0
 
 
 @_kernel
-def _locate(tab, X):
-    """Return (segment, local abscissa) of arc length X (clipped to the rod)."""
-    X = min(max(X, 0.0), tab.offsets[-1])
-    seg = np.searchsorted(tab.offsets, X, side='right') - 1
-    seg = min(max(seg, 0), tab.seg_len.shape[0] - 1)
-    return seg, X - tab.offsets[seg]
+def _ad_column(x, c, out):
+    """Write column c of ad_x = [[w^, 0], [v^, w^]] into out[0:6] (w^ e_k = w x e_k)."""
+    k = c if c < 3 else c - 3
+    o = 3 if c < 3 else 0          # where the column's second block reads from
+    w0, w1, w2 = x[0], x[1], x[2]
+    u0, u1, u2 = x[o], x[o + 1], x[o + 2]
+    if k == 0:
+        a0, a1, a2, b0, b1, b2 = 0.0, w2, -w1, 0.0, u2, -u1
+    elif k == 1:
+        a0, a1, a2, b0, b1, b2 = -w2, 0.0, w0, -u2, 0.0, u0
+    else:
+        a0, a1, a2, b0, b1, b2 = w1, -w0, 0.0, u1, -u0, 0.0
+    if c < 3:
+        out[0], out[1], out[2], out[3], out[4], out[5] = a0, a1, a2, b0, b1, b2
+    else:
+        out[0], out[1], out[2], out[3], out[4], out[5] = 0.0, 0.0, 0.0, a0, a1, a2
 
 
 @_kernel
-def _magnus(tab, q, seg, a, h, jac, w):
-    """
-    Take one Magnus step over [a, a + h] of segment ``seg``.
+def _t_apply(M, y, out):
+    """Write T y = [TR y_w; TV y_w + TR y_v] into out (TR, TV in M[6], M[7])."""
+    for i in range(3):
+        out[i] = M[6, i, 0] * y[0] + M[6, i, 1] * y[1] + M[6, i, 2] * y[2]
+        out[3 + i] = (M[7, i, 0] * y[0] + M[7, i, 1] * y[1] + M[7, i, 2] * y[2]) \
+            + (M[6, i, 0] * y[3] + M[6, i, 1] * y[4] + M[6, i, 2] * y[5])
 
-    Its pose goes into w.E and, with ``jac``, ``T(om) d om / dq`` on the segment's
-    columns into w.TS.
+
+class Scratch(NamedTuple):
+    """Work arrays of the Magnus step, allocated once per kernel call."""
+
+    P: np.ndarray        # (2, nm) basis at the two Zanna points
+    X: np.ndarray        # (4, 6) strains there, the twist, a spare row
+    E: np.ndarray        # (4, 4) the step's pose
+    M: np.ndarray        # (8, 3, 3) dexp blocks (M[6] = TR, M[7] = TV) and their scratch
+    U: np.ndarray        # (4, 6) columns of T, T ad_x1, T ad_x2; a spare
+    TS: np.ndarray       # (6, D) T(om) d om / dq on one segment's columns
+
+
+@_kernel
+def scratch(nm, D):
+    return Scratch(np.empty((2, nm)), np.empty((4, 6)), np.empty((4, 4)), np.empty((8, 3, 3)),
+                   np.empty((4, 6)), np.empty((6, D)))
+
+
+@_inline
+def _magnus(q, L, comps, col0, a, h, jac, P, X, E, M, U, TS):
     """
-    _strain(tab, q, seg, a + Z1 * h, w.P1, w.x1)
-    _strain(tab, q, seg, a + Z2 * h, w.P2, w.x2)
-    x1, x2 = w.x1, w.x2
-    bracket = w.br
-    bracket[0] = x1[1] * x2[2] - x1[2] * x2[1]
-    bracket[1] = x1[2] * x2[0] - x1[0] * x2[2]
-    bracket[2] = x1[0] * x2[1] - x1[1] * x2[0]
-    bracket[3] = (x1[1] * x2[5] - x1[2] * x2[4]) + (x1[4] * x2[2] - x1[5] * x2[1])
-    bracket[4] = (x1[2] * x2[3] - x1[0] * x2[5]) + (x1[5] * x2[0] - x1[3] * x2[2])
-    bracket[5] = (x1[0] * x2[4] - x1[1] * x2[3]) + (x1[3] * x2[1] - x1[4] * x2[0])
+    Take one Magnus step over [a, a + h] (local abscissae) of a segment of length L.
+
+    The segment's columns of q start at col0. The step's pose goes into E and, with
+    ``jac``, ``T(om) d om / dq`` on the segment's columns into TS (6, D):
+    ``d om = h/2 (dx1 + dx2) + C4 h^2 (ad_x1 dx2 - ad_x2 dx1)``.
+    """
+    x1, x2, om = X[0], X[1], X[2]
+    _legendre(2.0 * (a + Z1 * h) / L - 1.0, P, 0)
+    _legendre(2.0 * (a + Z2 * h) / L - 1.0, P, 1)
+    _strain_at(P, 0, q, col0, comps, x1)
+    _strain_at(P, 1, q, col0, comps, x2)
     c2 = C4 * h ** 2
-    for i in range(6):
-        w.om[i] = h / 2 * (x1[i] + x2[i]) + c2 * bracket[i]
-    _exp(w.om, w)
-    if not jac:
-        return
-    _dexp(w.om, w)
-    _ad(x1, w.ad1)
-    _ad(x2, w.ad2)
-    nm = tab.n_modes
-    for ci in range(tab.comps.shape[0]):
-        c = tab.comps[ci]
-        for j in range(nm):
-            col = ci * nm + j
+    b0 = x1[1] * x2[2] - x1[2] * x2[1]                      # [x1, x2] = ad_x1 x2
+    b1 = x1[2] * x2[0] - x1[0] * x2[2]
+    b2 = x1[0] * x2[1] - x1[1] * x2[0]
+    b3 = (x1[1] * x2[5] - x1[2] * x2[4]) + (x1[4] * x2[2] - x1[5] * x2[1])
+    b4 = (x1[2] * x2[3] - x1[0] * x2[5]) + (x1[5] * x2[0] - x1[3] * x2[2])
+    b5 = (x1[0] * x2[4] - x1[1] * x2[3]) + (x1[3] * x2[1] - x1[4] * x2[0])
+    om[0] = h / 2 * (x1[0] + x2[0]) + c2 * b0
+    om[1] = h / 2 * (x1[1] + x2[1]) + c2 * b1
+    om[2] = h / 2 * (x1[2] + x2[2]) + c2 * b2
+    om[3] = h / 2 * (x1[3] + x2[3]) + c2 * b3
+    om[4] = h / 2 * (x1[4] + x2[4]) + c2 * b4
+    om[5] = h / 2 * (x1[5] + x2[5]) + c2 * b5
+    th2, f1, f2, f3, f4 = _exp_into(om, E)
+    if jac:
+        _dexp_blocks(om, th2, f1, f2, f3, f4, M)
+        nm = P.shape[1]
+        for ci in range(comps.shape[0]):
+            c = comps[ci]
+            # T e_c, T ad_x1 e_c and T ad_x2 e_c; each column of TS combines them.
             for r in range(6):
-                w.S[r, col] = c2 * (w.P2[j] * w.ad1[r, c] - w.P1[j] * w.ad2[r, c])
-            w.S[c, col] += h / 2 * (w.P1[j] + w.P2[j])
-    _matmul(w.T, w.S, w.TS)
+                U[3, r] = 1.0 if r == c else 0.0
+            _t_apply(M, U[3], U[0])
+            _ad_column(x1, c, U[3])
+            _t_apply(M, U[3], U[1])
+            _ad_column(x2, c, U[3])
+            _t_apply(M, U[3], U[2])
+            for j in range(nm):
+                hp = h / 2 * (P[0, j] + P[1, j])
+                for r in range(6):
+                    TS[r, ci * nm + j] = hp * U[0, r] + c2 * (P[1, j] * U[1, r]
+                                                              - P[0, j] * U[2, r])
+
+
+@_kernel
+def _locate(offsets, X):
+    """Return (segment, local abscissa) of arc length X (clipped to the rod)."""
+    X = min(max(X, 0.0), offsets[offsets.shape[0] - 1])
+    seg = min(max(_bisect_right(offsets, X) - 1, 0), offsets.shape[0] - 2)
+    return seg, X - offsets[seg]
 
 
 @_kernel
@@ -460,69 +558,89 @@ def forward(tab, q, jac):
     J is empty unless ``jac``. The poses chain the Magnus steps from the base; the Jacobian
     follows in the same pass, ``J_{k+1} = Ad_{exp(-om_k)} J_k + T(om_k) d om_k / dq``.
     """
-    M = tab.int_h.shape[0]
+    seg_len, comps, int_seg, int_a, int_h = tab.seg_len, tab.comps, tab.int_seg, tab.int_a, \
+        tab.int_h
+    nm = tab.n_modes
+    M = int_h.shape[0]
     n = q.shape[0]
-    D = tab.n_modes * tab.comps.shape[0]
-    w = _work(tab.n_modes, D)
+    D = nm * comps.shape[0]
+    P, X, E, Ms, U, TS = scratch(nm, D)
     g = np.empty((M + 1, 4, 4))
-    g[0] = tab.base
+    for i in range(4):
+        for j in range(4):
+            g[0, i, j] = tab.base[i, j]
     J = np.zeros((M + 1 if jac else 0, 6, n))
     for k in range(M):
-        seg = tab.int_seg[k]
-        _magnus(tab, q, seg, tab.int_a[k], tab.int_h[k], jac, w)
-        _pose_mul(g[k], w.E, g[k + 1])
+        seg = int_seg[k]
+        _magnus(q, seg_len[seg], comps, seg * D, int_a[k], int_h[k], jac, P, X, E, Ms, U, TS)
+        _pose_mul(g[k], E, g[k + 1])
         if jac:
-            _adinv_apply(w.E, J[k], J[k + 1], (seg + 1) * D)
-            J[k + 1, :, seg * D:(seg + 1) * D] += w.TS
-    xi = np.empty((tab.gauss_X.shape[0], 6))
-    for i in range(tab.gauss_X.shape[0]):
-        s = tab.gauss_seg[i]
-        _strain(tab, q, s, tab.gauss_X[i] - tab.offsets[s], w.P1, xi[i])
+            _adinv_apply(E, J[k], J[k + 1], (seg + 1) * D)
+            for r in range(6):
+                for c in range(D):
+                    J[k + 1, r, seg * D + c] += TS[r, c]
+    gauss_X, gauss_seg, offsets = tab.gauss_X, tab.gauss_seg, tab.offsets
+    xi = np.empty((gauss_X.shape[0], 6))
+    for i in range(gauss_X.shape[0]):
+        s = gauss_seg[i]
+        _legendre(2.0 * (gauss_X[i] - offsets[s]) / seg_len[s] - 1.0, P, 0)
+        _strain_at(P, 0, q, s * D, comps, xi[i])
     return g, J, xi
 
 
 @_kernel
-def _point_frame(tab, q, g_nodes, J_nodes, X, jac, w, g_out, J_out):
+def _point_frame(q, tab, g_nodes, J_nodes, X, jac, w, g_out, J_out):
     """Write the pose (and with ``jac`` the Jacobian) at X: a Magnus step from the node before."""
-    X = min(max(X, 0.0), tab.offsets[-1])
-    N = tab.node_X.shape[0]
-    k = np.searchsorted(tab.node_X, X)
-    if k < N and tab.node_X[k] == X:
-        g_out[:, :] = g_nodes[k]
+    P, Xw, E, Ms, U, TS = w
+    node_X, comps = tab.node_X, tab.comps
+    N = node_X.shape[0]
+    X = min(max(X, 0.0), node_X[N - 1])
+    k = _bisect_left(node_X, X)
+    if k < N and node_X[k] == X:
+        for i in range(4):
+            for j in range(4):
+                g_out[i, j] = g_nodes[k, i, j]
         if jac:
-            J_out[:, :] = J_nodes[k]
+            for i in range(6):
+                for j in range(J_out.shape[1]):
+                    J_out[i, j] = J_nodes[k, i, j]
         return
-    m = min(max(np.searchsorted(tab.node_X, X, side='right') - 1, 0), N - 2)
+    m = min(max(_bisect_right(node_X, X) - 1, 0), N - 2)
     seg = tab.int_seg[m]
-    _magnus(tab, q, seg, tab.int_a[m], X - tab.node_X[m], jac, w)
-    _pose_mul(g_nodes[m], w.E, g_out)
+    D = P.shape[1] * comps.shape[0]
+    _magnus(q, tab.seg_len[seg], comps, seg * D, tab.int_a[m], X - node_X[m], jac, P, Xw, E,
+            Ms, U, TS)
+    _pose_mul(g_nodes[m], E, g_out)
     if jac:
-        D = tab.n_modes * tab.comps.shape[0]
-        _adinv_apply(w.E, J_nodes[m], J_out, J_out.shape[1])
-        J_out[:, seg * D:(seg + 1) * D] += w.TS
+        _adinv_apply(E, J_nodes[m], J_out, J_out.shape[1])
+        for r in range(6):
+            for c in range(D):
+                J_out[r, seg * D + c] += TS[r, c]
 
 
 @_kernel
 def point_frames(tab, q, g_nodes, J_nodes, X, jac):
     """Return poses (P, 4, 4) and body Jacobians (P, 6, n) (empty unless ``jac``) at X."""
     n = q.shape[0]
-    w = _work(tab.n_modes, tab.n_modes * tab.comps.shape[0])
+    w = scratch(tab.n_modes, tab.n_modes * tab.comps.shape[0])
     g = np.empty((X.shape[0], 4, 4))
     J = np.zeros((X.shape[0] if jac else 0, 6, n))
     dummy = np.empty((6, n))
     for i in range(X.shape[0]):
-        _point_frame(tab, q, g_nodes, J_nodes, X[i], jac, w, g[i], J[i] if jac else dummy)
+        _point_frame(q, tab, g_nodes, J_nodes, X[i], jac, w, g[i], J[i] if jac else dummy)
     return g, J
 
 
 @_kernel
 def strains(tab, q, X):
     """Return the strain (P, 6) at arc lengths X (segment ends read the next segment)."""
-    P = np.empty(tab.n_modes)
+    D = tab.n_modes * tab.comps.shape[0]
+    P = np.empty((1, tab.n_modes))
     xi = np.empty((X.shape[0], 6))
     for i in range(X.shape[0]):
-        seg, x = _locate(tab, X[i])
-        _strain(tab, q, seg, x, P, xi[i])
+        seg, x = _locate(tab.offsets, X[i])
+        _legendre(2.0 * x / tab.seg_len[seg] - 1.0, P, 0)
+        _strain_at(P, 0, q, seg * D, tab.comps, xi[i])
     return xi
 
 
@@ -530,230 +648,240 @@ def strains(tab, q, X):
 def basis_matrices(tab, seg, x, n):
     """Return Phi (P, 6, n) at local abscissae x of segments seg (the dense form)."""
     nm, nc = tab.n_modes, tab.comps.shape[0]
-    P = np.empty(nm)
+    P = np.empty((1, nm))
     out = np.zeros((x.shape[0], 6, n))
     for i in range(x.shape[0]):
-        _legendre(2.0 * x[i] / tab.seg_len[seg[i]] - 1.0, P)
+        _legendre(2.0 * x[i] / tab.seg_len[seg[i]] - 1.0, P, 0)
         for ci in range(nc):
             for j in range(nm):
-                out[i, tab.comps[ci], seg[i] * nm * nc + ci * nm + j] = P[j]
+                out[i, tab.comps[ci], seg[i] * nm * nc + ci * nm + j] = P[0, j]
     return out
 
 
 @_kernel
-def _add_phi_t(tab, seg, P, weight, rows, out):
-    """Add ``weight Phi^T rows`` to ``out`` (n, k): Phi's nonzeros are P_j at (c, col)."""
-    nm, nc = tab.n_modes, tab.comps.shape[0]
-    for ci in range(nc):
-        c = tab.comps[ci]
+def _add_phi_t(comps, col0, P, weight, rows, out):
+    """Add ``weight Phi^T rows`` to out (n, k): Phi's nonzeros are P[0, j] at (c, col)."""
+    nm = P.shape[1]
+    for ci in range(comps.shape[0]):
+        c = comps[ci]
         for j in range(nm):
-            col = seg * nm * nc + ci * nm + j
-            f = weight * P[j]
+            f = weight * P[0, j]
+            col = col0 + ci * nm + j
             for k in range(rows.shape[1]):
                 out[col, k] += f * rows[c, k]
 
 
 @_kernel
-def _add_phi_t_vec(tab, seg, P, weight, v, out):
-    """Add ``weight Phi^T v`` to ``out`` (n,) for a 6-vector v."""
-    nm, nc = tab.n_modes, tab.comps.shape[0]
-    for ci in range(nc):
-        c = tab.comps[ci]
+def _add_phi_t_vec(comps, col0, P, weight, v, out):
+    """Add ``weight Phi^T v`` to out (n,) for a 6-vector v."""
+    nm = P.shape[1]
+    for ci in range(comps.shape[0]):
+        c = comps[ci]
         for j in range(nm):
-            out[seg * nm * nc + ci * nm + j] += weight * P[j] * v[c]
+            out[col0 + ci * nm + j] += weight * P[0, j] * v[c]
 
 
 # -- obstacles: signed distance, unit gradient and Hessian ---------------------------------
+# Each kind takes a point of its own frame as scalars and returns (d, nx, ny, nz); with
+# ``hess`` it writes the distance's Hessian into H.
 @_kernel
-def _normalise(v):
-    r = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
-    r = max(r, 1e-300)
-    v[0] /= r
-    v[1] /= r
-    v[2] /= r
+def _unit(x, y, z):
+    r = max(math.sqrt(x * x + y * y + z * z), NORM_FLOOR)
+    return x / r, y / r, z / r
 
 
 @_kernel
-def _circle_hessian(p, n, dist, R0, H):
+def _circle_hessian(x, y, n0, n1, n2, dist, R0, H):
     """H = [(I - n n^T) - (R0 / rho) t t^T] / dist: distance to a circle of radius R0 about z."""
-    rho = max(math.hypot(p[0], p[1]), DIST_FLOOR)
-    t0, t1 = -p[1] / rho, p[0] / rho
+    rho = max(math.hypot(x, y), DIST_FLOOR)
+    t0, t1 = -y / rho, x / rho
     c = R0 / rho
     den = max(dist, DIST_FLOOR)
-    tt = (t0, t1, 0.0)
+    H[0, 0] = ((1.0 - n0 * n0) - c * (t0 * t0)) / den
+    H[0, 1] = ((0.0 - n0 * n1) - c * (t0 * t1)) / den
+    H[0, 2] = ((0.0 - n0 * n2) - c * (t0 * 0.0)) / den
+    H[1, 0] = ((0.0 - n1 * n0) - c * (t1 * t0)) / den
+    H[1, 1] = ((1.0 - n1 * n1) - c * (t1 * t1)) / den
+    H[1, 2] = ((0.0 - n1 * n2) - c * (t1 * 0.0)) / den
+    H[2, 0] = ((0.0 - n2 * n0) - c * (0.0 * t0)) / den
+    H[2, 1] = ((0.0 - n2 * n1) - c * (0.0 * t1)) / den
+    H[2, 2] = ((1.0 - n2 * n2) - c * 0.0) / den
+
+
+@_kernel
+def _zero3(H):
     for i in range(3):
         for j in range(3):
-            H[i, j] = (((1.0 if i == j else 0.0) - n[i] * n[j]) - c * (tt[i] * tt[j])) / den
+            H[i, j] = 0.0
 
 
 @_kernel
-def _sphere(prm, p, hess, n, H):
-    nrm = math.sqrt(p[0] * p[0] + p[1] * p[1] + p[2] * p[2])
+def _sphere(prm, x, y, z, hess, H):
+    nrm = math.sqrt(x * x + y * y + z * z)
     d = nrm - prm[0]
-    n[:] = p
-    _normalise(n)
+    n0, n1, n2 = _unit(x, y, z)
     if hess:
-        _circle_hessian(p, n, d + prm[0], 0.0, H)
-    return d
+        _circle_hessian(x, y, n0, n1, n2, d + prm[0], 0.0, H)
+    return d, n0, n1, n2
 
 
 @_kernel
-def _plane(prm, p, hess, n, H):
-    n[0], n[1], n[2] = 0.0, 0.0, 1.0
+def _plane(prm, x, y, z, hess, H):
     if hess:
-        H[:, :] = 0.0
-    return p[2]
+        _zero3(H)
+    return z, 0.0, 0.0, 1.0
 
 
 @_kernel
-def _cylinder(prm, p, hess, n, H):
+def _cylinder(prm, x, y, z, hess, H):
     """Axis z, centred: radius prm[0], half height prm[1]; the rim is a circle."""
     r, hh = prm[0], prm[1]
-    rho = math.sqrt(p[0] * p[0] + p[1] * p[1])
-    dr, dz = rho - r, abs(p[2]) - hh
+    rho = math.sqrt(x * x + y * y)
+    dr, dz = rho - r, abs(z) - hh
     out_r, out_z = max(dr, 0.0), max(dz, 0.0)
     outside = math.hypot(out_r, out_z)
     d = outside + min(max(dr, dz), 0.0)
-    rn = max(math.sqrt(p[0] * p[0] + p[1] * p[1]), 1e-300)
-    u0, u1 = p[0] / rn, p[1] / rn                        # radial unit vector
-    axial = (1.0 if p[2] > 0 else (-1.0 if p[2] < 0 else 0.0)) + (1.0 if p[2] == 0 else 0.0)
+    u0, u1, _ = _unit(x, y, 0.0)                        # radial unit vector
+    axial = (1.0 if z > 0 else (-1.0 if z < 0 else 0.0)) + (1.0 if z == 0 else 0.0)
     if outside > 0:
-        n[0], n[1], n[2] = out_r * u0, out_r * u1, out_z * axial
-        _normalise(n)
+        n0, n1, n2 = _unit(out_r * u0, out_r * u1, out_z * axial)
     elif dr > dz:
-        n[0], n[1], n[2] = u0, u1, 0.0
+        n0, n1, n2 = u0, u1, 0.0
     else:
-        n[0], n[1], n[2] = 0.0, 0.0, axial
+        n0, n1, n2 = 0.0, 0.0, axial
     if not hess:
-        return d
-    rho = max(math.hypot(p[0], p[1]), DIST_FLOOR)
+        return d, n0, n1, n2
+    rho = max(math.hypot(x, y), DIST_FLOOR)
     dr = rho - r
     if dr > 0 and dz > 0:                                # rim: distance to a circle
-        _circle_hessian(p, n, d, r, H)                   # (its z does not enter)
-        return d
+        _circle_hessian(x, y, n0, n1, n2, d, r, H)
+        return d, n0, n1, n2
     side = (dr > 0 and dz <= 0) or (d <= 0 and dr > dz)
-    t0, t1 = -p[1] / rho, p[0] / rho
+    t0, t1 = -y / rho, x / rho
     f = (1.0 if side else 0.0) / rho
-    H[:, :] = 0.0
+    _zero3(H)
     H[0, 0], H[0, 1], H[1, 0], H[1, 1] = f * (t0 * t0), f * (t0 * t1), f * (t1 * t0), f * (t1 * t1)
-    return d
+    return d, n0, n1, n2
 
 
 @_kernel
-def _ring(prm, p, hess, n, H):
+def _ring(prm, x, y, z, hess, H):
     """Torus around z in the x-y plane: major radius prm[0], minor prm[1]."""
     R0, r = prm[0], prm[1]
-    rn = max(math.sqrt(p[0] * p[0] + p[1] * p[1]), 1e-300)
-    n[0], n[1], n[2] = p[0] - R0 * (p[0] / rn), p[1] - R0 * (p[1] / rn), p[2]
-    d = math.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]) - r
-    _normalise(n)
+    u0, u1, _ = _unit(x, y, 0.0)
+    v0, v1, v2 = x - R0 * u0, y - R0 * u1, z
+    d = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2) - r
+    n0, n1, n2 = _unit(v0, v1, v2)
     if hess:
-        _circle_hessian(p, n, d + r, R0, H)
-    return d
+        _circle_hessian(x, y, n0, n1, n2, d + r, R0, H)
+    return d, n0, n1, n2
 
 
 @_kernel
-def _prism(prm, p, hess, n, H):
+def _prism(prm, x, y, z, hess, H):
     """
     Return the distance to an oblique prism (exact).
 
     Outside the nearest face interior or edge, inside the largest face distance; edges are
     lines with a Hessian, faces are flat.
     """
-    pp = p[0] * p[0] + p[1] * p[1] + p[2] * p[2]
+    pp = x * x + y * y + z * z
     inside_d, j_in = -np.inf, 0
     for j in range(6):
-        e = (p[0] * prm[PRISM_NORMALS + 3 * j] + p[1] * prm[PRISM_NORMALS + 3 * j + 1]
-             + p[2] * prm[PRISM_NORMALS + 3 * j + 2]) - prm[PRISM_OFFSETS + j]
+        o = PRISM_NORMALS + 3 * j
+        e = (x * prm[o] + y * prm[o + 1] + z * prm[o + 2]) - prm[PRISM_OFFSETS + j]
         if e > inside_d:
             inside_d, j_in = e, j
     best, k_best, t_best = np.inf, 0, 0.0
     for k in range(12):
         ea, eab = PRISM_EA + 3 * k, PRISM_EAB + 3 * k
-        dot = (p[0] * prm[eab] + p[1] * prm[eab + 1] + p[2] * prm[eab + 2]) \
-            - prm[PRISM_EA_EAB + k]
+        dot = (x * prm[eab] + y * prm[eab + 1] + z * prm[eab + 2]) - prm[PRISM_EA_EAB + k]
         l2 = prm[PRISM_EAB2 + k]
         t = min(max(dot / l2, 0.0), 1.0)
-        rel2 = pp - 2.0 * (p[0] * prm[ea] + p[1] * prm[ea + 1] + p[2] * prm[ea + 2]) \
-            + prm[PRISM_EA2 + k]
+        rel2 = pp - 2.0 * (x * prm[ea] + y * prm[ea + 1] + z * prm[ea + 2]) + prm[PRISM_EA2 + k]
         de = math.sqrt(max(rel2 - t * (2.0 * dot - t * l2), 0.0))
         if de < best:
             best, k_best, t_best = de, k, t
     h_best = 0.0
     for f in range(6):
         a0 = PRISM_FPROJ + 6 * f
-        u = (p[0] * prm[a0] + p[1] * prm[a0 + 1] + p[2] * prm[a0 + 2]) \
-            - prm[PRISM_FA_AB + 2 * f]
-        v = (p[0] * prm[a0 + 3] + p[1] * prm[a0 + 4] + p[2] * prm[a0 + 5]) \
-            - prm[PRISM_FA_AB + 2 * f + 1]
+        u = (x * prm[a0] + y * prm[a0 + 1] + z * prm[a0 + 2]) - prm[PRISM_FA_AB + 2 * f]
+        v = (x * prm[a0 + 3] + y * prm[a0 + 4] + z * prm[a0 + 5]) - prm[PRISM_FA_AB + 2 * f + 1]
         if 0.0 <= u <= 1.0 and 0.0 <= v <= 1.0:
             fn = PRISM_FN + 3 * f
-            h = (p[0] * prm[fn] + p[1] * prm[fn + 1] + p[2] * prm[fn + 2]) - prm[PRISM_FN_A + f]
+            h = (x * prm[fn] + y * prm[fn + 1] + z * prm[fn + 2]) - prm[PRISM_FN_A + f]
             if abs(h) < best:
                 best, k_best, h_best = abs(h), 12 + f, h
     if inside_d > 0:
         if k_best < 12:
             ea, eab = PRISM_EA + 3 * k_best, PRISM_EAB + 3 * k_best
-            for i in range(3):
-                n[i] = p[i] - (prm[ea + i] + t_best * prm[eab + i])
+            n0, n1, n2 = _unit(x - (prm[ea] + t_best * prm[eab]),
+                               y - (prm[ea + 1] + t_best * prm[eab + 1]),
+                               z - (prm[ea + 2] + t_best * prm[eab + 2]))
         else:
-            fn = PRISM_FN + 3 * (k_best - 12)
-            for i in range(3):
-                n[i] = h_best * prm[fn + i]      # p - (p - h fn)
-        _normalise(n)
+            fn = PRISM_FN + 3 * (k_best - 12)            # p - (p - h fn)
+            n0, n1, n2 = _unit(h_best * prm[fn], h_best * prm[fn + 1], h_best * prm[fn + 2])
         d = best
     else:
-        for i in range(3):
-            n[i] = prm[PRISM_NORMALS + 3 * j_in + i]
+        o = PRISM_NORMALS + 3 * j_in
+        n0, n1, n2 = prm[o], prm[o + 1], prm[o + 2]
         d = inside_d
         k_best = 12
     if not hess:
-        return d
-    H[:, :] = 0.0
+        return d, n0, n1, n2
+    _zero3(H)
     if k_best < 12:
         eab = PRISM_EAB + 3 * k_best
-        la = max(math.sqrt(prm[eab] ** 2 + prm[eab + 1] ** 2 + prm[eab + 2] ** 2), 1e-300)
+        a0, a1, a2 = _unit(prm[eab], prm[eab + 1], prm[eab + 2])
         line = 1.0 if 0.0 < t_best < 1.0 else 0.0
         den = max(d, DIST_FLOOR)
+        nv = (n0, n1, n2)
+        av = (a0, a1, a2)
         for i in range(3):
             for j in range(3):
-                H[i, j] = (((1.0 if i == j else 0.0) - n[i] * n[j])
-                           - line * ((prm[eab + i] / la) * (prm[eab + j] / la))) / den
-    return d
+                H[i, j] = (((1.0 if i == j else 0.0) - nv[i] * nv[j]) - line * (av[i] * av[j])) \
+                    / den
+    return d, n0, n1, n2
 
 
 @_kernel
-def _sdf_local(kind, prm, p, hess, n, H):
+def _sdf_world(kind, prm, pose, px, py, pz, hess, H):
+    """Return (d, nx, ny, nz) at a world point; with ``hess`` its world Hessian into H."""
+    x = ((px - pose[0, 3]) * pose[0, 0] + (py - pose[1, 3]) * pose[1, 0]) \
+        + (pz - pose[2, 3]) * pose[2, 0]
+    y = ((px - pose[0, 3]) * pose[0, 1] + (py - pose[1, 3]) * pose[1, 1]) \
+        + (pz - pose[2, 3]) * pose[2, 1]
+    z = ((px - pose[0, 3]) * pose[0, 2] + (py - pose[1, 3]) * pose[1, 2]) \
+        + (pz - pose[2, 3]) * pose[2, 2]
     if kind == CYLINDER:
-        return _cylinder(prm, p, hess, n, H)
-    if kind == RING:
-        return _ring(prm, p, hess, n, H)
-    if kind == PRISM:
-        return _prism(prm, p, hess, n, H)
-    if kind == SPHERE:
-        return _sphere(prm, p, hess, n, H)
-    return _plane(prm, p, hess, n, H)
-
-
-@_kernel
-def _sdf_world(kind, prm, pose, p, hess, n, H, scratch):
-    """Return the distance at world point p; world gradient into n, Hessian into H."""
-    pl, nl, Hl = scratch[0], scratch[1], scratch[2:5]
-    for j in range(3):
-        pl[j] = ((p[0] - pose[0, 3]) * pose[0, j] + (p[1] - pose[1, 3]) * pose[1, j]) \
-            + (p[2] - pose[2, 3]) * pose[2, j]
-    d = _sdf_local(kind, prm, pl, hess, nl, Hl)
-    for i in range(3):
-        n[i] = (nl[0] * pose[i, 0] + nl[1] * pose[i, 1]) + nl[2] * pose[i, 2]
+        d, a, b, c = _cylinder(prm, x, y, z, hess, H)
+    elif kind == RING:
+        d, a, b, c = _ring(prm, x, y, z, hess, H)
+    elif kind == PRISM:
+        d, a, b, c = _prism(prm, x, y, z, hess, H)
+    elif kind == SPHERE:
+        d, a, b, c = _sphere(prm, x, y, z, hess, H)
+    else:
+        d, a, b, c = _plane(prm, x, y, z, hess, H)
+    n0 = (a * pose[0, 0] + b * pose[0, 1]) + c * pose[0, 2]
+    n1 = (a * pose[1, 0] + b * pose[1, 1]) + c * pose[1, 2]
+    n2 = (a * pose[2, 0] + b * pose[2, 1]) + c * pose[2, 2]
     if hess:
-        for i in range(3):
-            for j in range(3):
-                s = 0.0
-                for a in range(3):
-                    for b in range(3):
-                        s += pose[i, a] * Hl[a, b] * pose[j, b]
-                H[i, j] = s
-    return d
+        # H <- R H R^T, through R H first (9 temporaries).
+        h00 = H[0, 0] * pose[0, 0] + H[1, 0] * pose[0, 1] + H[2, 0] * pose[0, 2]
+        h01 = H[0, 1] * pose[0, 0] + H[1, 1] * pose[0, 1] + H[2, 1] * pose[0, 2]
+        h02 = H[0, 2] * pose[0, 0] + H[1, 2] * pose[0, 1] + H[2, 2] * pose[0, 2]
+        h10 = H[0, 0] * pose[1, 0] + H[1, 0] * pose[1, 1] + H[2, 0] * pose[1, 2]
+        h11 = H[0, 1] * pose[1, 0] + H[1, 1] * pose[1, 1] + H[2, 1] * pose[1, 2]
+        h12 = H[0, 2] * pose[1, 0] + H[1, 2] * pose[1, 1] + H[2, 2] * pose[1, 2]
+        h20 = H[0, 0] * pose[2, 0] + H[1, 0] * pose[2, 1] + H[2, 0] * pose[2, 2]
+        h21 = H[0, 1] * pose[2, 0] + H[1, 1] * pose[2, 1] + H[2, 1] * pose[2, 2]
+        h22 = H[0, 2] * pose[2, 0] + H[1, 2] * pose[2, 1] + H[2, 2] * pose[2, 2]
+        for j in range(3):
+            H[0, j] = h00 * pose[j, 0] + h01 * pose[j, 1] + h02 * pose[j, 2]
+            H[1, j] = h10 * pose[j, 0] + h11 * pose[j, 1] + h12 * pose[j, 2]
+            H[2, j] = h20 * pose[j, 0] + h21 * pose[j, 1] + h22 * pose[j, 2]
+    return d, n0, n1, n2
 
 
 @_kernel
@@ -768,23 +896,22 @@ def sdf_points(kind, prm, pose, pts, hess):
     n = np.empty((P, 3))
     H = np.zeros((P if hess else 0, 3, 3))
     Hd = np.empty((3, 3))
-    scratch = np.empty((5, 3))
     for i in range(P):
-        d[i] = _sdf_world(kind, prm, pose, pts[i], hess, n[i], H[i] if hess else Hd, scratch)
+        d[i], n[i, 0], n[i, 1], n[i, 2] = _sdf_world(kind, prm, pose, pts[i, 0], pts[i, 1],
+                                                     pts[i, 2], hess, H[i] if hess else Hd)
     return d, n, H
 
 
 @_kernel
 def least_gap(kinds, prms, poses, pts, radii):
     """Return the least ``distance - radius`` of points (P, 3) over all obstacles."""
-    n = np.empty(3)
     H = np.empty((3, 3))
-    scratch = np.empty((5, 3))
     best = np.inf
     for o in range(kinds.shape[0]):
         for i in range(pts.shape[0]):
-            best = min(best, _sdf_world(kinds[o], prms[o], poses[o], pts[i], False, n, H,
-                                        scratch) - radii[i])
+            d = _sdf_world(kinds[o], prms[o], poses[o], pts[i, 0], pts[i, 1], pts[i, 2], False,
+                           H)[0]
+            best = min(best, d - radii[i])
     return best
 
 
@@ -802,80 +929,117 @@ class PenaltyParams(NamedTuple):
 
 
 @_kernel
-def _tube_radius(tab, X):
-    return tab.radii[_locate(tab, X)[0]]
+def _cubic_min(g0, g1, m0, m1):
+    """Return the least value on [0, 1] of the cubic with values g0, g1 and slopes m0, m1."""
+    c1 = m0
+    c2 = 3.0 * (g1 - g0) - 2.0 * m0 - m1
+    c3 = 2.0 * (g0 - g1) + m0 + m1
+    best = min(g0, g1)
+    a, b, c = 3.0 * c3, 2.0 * c2, c1                    # g'(t) = c + b t + a t^2
+    r0, r1 = -1.0, -1.0
+    if a == 0.0:
+        if b != 0.0:
+            r0 = -c / b
+    else:
+        disc = b * b - 4.0 * a * c
+        if disc >= 0.0:
+            s = math.sqrt(disc)
+            r0, r1 = (-b - s) / (2.0 * a), (-b + s) / (2.0 * a)
+    if 0.0 < r0 < 1.0:
+        best = min(best, g0 + r0 * (c1 + r0 * (c2 + r0 * c3)))
+    if 0.0 < r1 < 1.0:
+        best = min(best, g0 + r1 * (c1 + r1 * (c2 + r1 * c3)))
+    return best
 
 
 @_kernel
-def _sample_gaps(tab, q, g_nodes, kind, prm, pose, law, node_gap, node_slope, w):
+def _slope(G, xi, n0, n1, n2):
+    """Return d gap / dX = n . (R nu) at frame G with strain xi."""
+    s = 0.0
+    nv = (n0, n1, n2)
+    for r in range(3):
+        s += nv[r] * (G[r, 0] * xi[3] + G[r, 1] * xi[4] + G[r, 2] * xi[5])
+    return s
+
+
+@_kernel
+def _sample_gaps(tab, q, g_nodes, kind, prm, pose, near, sub, node_gap, node_slope, w):
     """
     Return the sample abscissae, gaps and gap slopes along the backbone for one obstacle.
 
-    Samples are the nodes and ``law.samples - 1`` points inside each node interval, on the
-    exact rod (a Magnus step from the interval's first node). An interval whose nodes are
-    so far that no point between can be near is not sampled (gap +inf, slope +1).
+    Samples are the nodes and ``sub - 1`` points inside each node interval, on the exact rod
+    (a Magnus step from the interval's first node). An interval whose nodes' cubic stays far
+    from the obstacle is not sampled (gap +inf, slope +1).
     """
-    N = tab.node_X.shape[0]
-    sub = law.samples
+    node_X, int_seg, int_a, seg_len, comps = tab.node_X, tab.int_seg, tab.int_a, \
+        tab.seg_len, tab.comps
+    offsets, radii = tab.offsets, tab.radii
+    P, Xw, E, Ms, U, TS = w
+    D = P.shape[1] * comps.shape[0]
+    N = node_X.shape[0]
     S = (N - 1) * sub + 1
     Xs = np.empty(S)
     gap = np.empty(S)
     slope = np.empty(S)
-    n = np.empty(3)
     H = np.empty((3, 3))
-    scratch = np.empty((5, 3))
-    xi = np.empty(6)
-    p = np.empty(3)
-    spread = tab.radii.max() - tab.radii.min()
+    G = np.empty((4, 4))
+    xi = Xw[3]
+    spread = 0.0
+    for s in range(radii.shape[0]):
+        spread = max(spread, radii[s] - radii[0], radii[0] - radii[s])
     for i in range(N):
-        Xs[min(i * sub, S - 1)] = tab.node_X[i]
-        gap[min(i * sub, S - 1)] = node_gap[i]
-        slope[min(i * sub, S - 1)] = node_slope[i]
+        Xs[i * sub] = node_X[i]
+        gap[i * sub] = node_gap[i]
+        slope[i * sub] = node_slope[i]
     for i in range(N - 1):
-        h = tab.node_X[i + 1] - tab.node_X[i]
-        far = min(node_gap[i], node_gap[i + 1]) - FAR_CUT_SLACK * h - spread > law.near
-        seg = tab.int_seg[i]
+        h = node_X[i + 1] - node_X[i]
+        far = _cubic_min(node_gap[i], node_gap[i + 1], h * node_slope[i],
+                         h * node_slope[i + 1]) - 2.0 * spread > near + CULL_MARGIN_M
+        seg = int_seg[i]
         for s in range(1, sub):
             k = i * sub + s
-            Xs[k] = tab.node_X[i] + h * (s / sub)
+            Xs[k] = node_X[i] + h * (s / sub)
             if far:
                 gap[k], slope[k] = np.inf, 1.0
                 continue
-            hk = Xs[k] - tab.node_X[i]
-            _magnus(tab, q, seg, tab.int_a[i], hk, False, w)
-            _pose_mul(g_nodes[i], w.E, w.G)
-            _strain(tab, q, seg, tab.int_a[i] + hk, w.P1, xi)
-            for r in range(3):
-                p[r] = w.G[r, 3]
-            d = _sdf_world(kind, prm, pose, p, False, n, H, scratch)
-            gap[k] = d - _tube_radius(tab, Xs[k])
-            sl = 0.0
-            for r in range(3):
-                sl += n[r] * (w.G[r, 0] * xi[3] + w.G[r, 1] * xi[4] + w.G[r, 2] * xi[5])
-            slope[k] = sl
+            hk = Xs[k] - node_X[i]
+            _magnus(q, seg_len[seg], comps, seg * D, int_a[i], hk, False, P, Xw, E, Ms, U, TS)
+            _pose_mul(g_nodes[i], E, G)
+            _legendre(2.0 * (int_a[i] + hk) / seg_len[seg] - 1.0, P, 0)
+            _strain_at(P, 0, q, seg * D, comps, xi)
+            d, n0, n1, n2 = _sdf_world(kind, prm, pose, G[0, 3], G[1, 3], G[2, 3], False, H)
+            gap[k] = d - radii[_locate(offsets, Xs[k])[0]]
+            slope[k] = _slope(G, xi, n0, n1, n2)
     return Xs, gap, slope
 
 
 @_kernel
-def _gap_derivatives(tab, q, g_nodes, iv, X, kind, prm, pose, w, n, H, scratch):
+def _gap_derivatives(tab, q, g_nodes, iv, X, kind, prm, pose, w, H, G):
     """Return (d gap/dX, d2 gap/dX2) at X in node interval iv (strain-based p'')."""
-    xi = w.x2
-    _magnus(tab, q, tab.int_seg[iv], tab.int_a[iv], X - tab.node_X[iv], False, w)
-    _pose_mul(g_nodes[iv], w.E, w.G)
-    _strain(tab, q, tab.int_seg[iv], tab.int_a[iv] + X - tab.node_X[iv], w.P1, xi)
-    p = scratch[5]
+    P, Xw, E, Ms, U, TS = w
+    xi = Xw[3]
+    seg = tab.int_seg[iv]
+    L = tab.seg_len[seg]
+    a = tab.int_a[iv]
+    comps = tab.comps
+    D = P.shape[1] * comps.shape[0]
+    h = X - tab.node_X[iv]
+    _magnus(q, L, comps, seg * D, a, h, False, P, Xw, E, Ms, U, TS)
+    _pose_mul(g_nodes[iv], E, G)
+    _legendre(2.0 * (a + h) / L - 1.0, P, 0)
+    _strain_at(P, 0, q, seg * D, comps, xi)
+    d, n0, n1, n2 = _sdf_world(kind, prm, pose, G[0, 3], G[1, 3], G[2, 3], True, H)
+    k0 = xi[1] * xi[5] - xi[2] * xi[4]                  # k x nu
+    k1 = xi[2] * xi[3] - xi[0] * xi[5]
+    k2 = xi[0] * xi[4] - xi[1] * xi[3]
+    nv = (n0, n1, n2)
+    t = (G[0, 0] * xi[3] + G[0, 1] * xi[4] + G[0, 2] * xi[5],
+         G[1, 0] * xi[3] + G[1, 1] * xi[4] + G[1, 2] * xi[5],
+         G[2, 0] * xi[3] + G[2, 1] * xi[4] + G[2, 2] * xi[5])
+    d1, d2n, tHt = 0.0, 0.0, 0.0
     for r in range(3):
-        p[r] = w.G[r, 3]
-    _sdf_world(kind, prm, pose, p, True, n, H, scratch)
-    t, kv = w.t, w.kv
-    _cross(xi[:3], xi[3:], kv)
-    d1, d2n = 0.0, 0.0
-    for r in range(3):
-        t[r] = w.G[r, 0] * xi[3] + w.G[r, 1] * xi[4] + w.G[r, 2] * xi[5]
-        d1 += n[r] * t[r]
-        d2n += n[r] * (w.G[r, 0] * kv[0] + w.G[r, 1] * kv[1] + w.G[r, 2] * kv[2])
-    tHt = 0.0
-    for r in range(3):
+        d1 += nv[r] * t[r]
+        d2n += nv[r] * (G[r, 0] * k0 + G[r, 1] * k1 + G[r, 2] * k2)
         for c in range(3):
             tHt += t[r] * H[r, c] * t[c]
     return d1, tHt + d2n
@@ -888,13 +1052,12 @@ def _refine(tab, q, g_nodes, iv, lo, hi, sa, sb, sign, kind, prm, pose, w):
 
     Safeguarded Newton on the exact rod, bisection where a step would leave the bracket.
     """
-    n = np.empty(3)
     H = np.empty((3, 3))
-    scratch = np.empty((6, 3))
+    G = np.empty((4, 4))
     frac = sa / (sa - sb) if sa != sb else 0.5
     x = min(max(lo + (hi - lo) * frac, lo), hi)
-    for _ in range(60):
-        d1, d2 = _gap_derivatives(tab, q, g_nodes, iv, x, kind, prm, pose, w, n, H, scratch)
+    for _ in range(REFINE_STEPS):
+        d1, d2 = _gap_derivatives(tab, q, g_nodes, iv, x, kind, prm, pose, w, H, G)
         if sign * d1 < 0:
             lo = x
         else:
@@ -911,60 +1074,57 @@ def _refine(tab, q, g_nodes, iv, lo, hi, sa, sb, sign, kind, prm, pose, w):
 
 
 @_kernel
-def _find(tab, q, g_nodes, kinds, prms, poses, law, node_gap, node_normal):
+def _find(tab, q, g_nodes, kinds, prms, poses, law, node_gap, node_normal, w):
     """
-    Return the gap's critical points near the obstacles: arc lengths, obstacle, sign.
+    Return the gap's critical points near the obstacles: rows (X, obstacle, sign).
 
     sign +1: a minimum (or the tip when the gap falls towards it), -1: an interior
     maximum. Brackets come from sign changes of the exact gap slope at the samples, so the
     result depends on q only. Fills the node gaps and normals on the way.
     """
-    N = tab.node_X.shape[0]
+    node_X, node_seg, offsets, radii, seg_len, comps = tab.node_X, tab.node_seg, \
+        tab.offsets, tab.radii, tab.seg_len, tab.comps
+    P, Xw = w.P, w.X
+    xi = Xw[3]
+    N = node_X.shape[0]
     n_obj = kinds.shape[0]
     sub = law.samples
+    near = law.near
     S = (N - 1) * sub + 1
-    L = tab.offsets[-1]
-    w = _work(tab.n_modes, tab.n_modes * tab.comps.shape[0])
-    cand_X = np.empty(n_obj * (S + 1))
-    cand_o = np.empty(n_obj * (S + 1), dtype=np.int64)
-    cand_s = np.empty(n_obj * (S + 1))
+    L = offsets[offsets.shape[0] - 1]
+    D = tab.n_modes * comps.shape[0]
+    cand = np.empty((n_obj * (S + 1), 3))
     nc = 0
     H = np.empty((3, 3))
-    scratch = np.empty((5, 3))
-    xi = np.empty(6)
-    P = np.empty(tab.n_modes)
     slope_n = np.empty(N)
-    p = np.empty(3)
     for o in range(n_obj):
+        kind, prm, pose = kinds[o], prms[o], poses[o]
         for i in range(N):
-            for r in range(3):
-                p[r] = g_nodes[i, r, 3]
-            d = _sdf_world(kinds[o], prms[o], poses[o], p, False, node_normal[o, i], H, scratch)
-            node_gap[o, i] = d - _tube_radius(tab, tab.node_X[i])
-            seg = tab.node_seg[i]
-            _strain(tab, q, seg, tab.node_X[i] - tab.offsets[seg], P, xi)
-            sl = 0.0
-            for r in range(3):
-                sl += node_normal[o, i, r] * (g_nodes[i, r, 0] * xi[3] + g_nodes[i, r, 1] * xi[4]
-                                              + g_nodes[i, r, 2] * xi[5])
-            slope_n[i] = sl
-        Xs, gap, slope = _sample_gaps(tab, q, g_nodes, kinds[o], prms[o], poses[o], law,
-                                      node_gap[o], slope_n, w)
+            d, n0, n1, n2 = _sdf_world(kind, prm, pose, g_nodes[i, 0, 3], g_nodes[i, 1, 3],
+                                       g_nodes[i, 2, 3], False, H)
+            node_normal[o, i, 0], node_normal[o, i, 1], node_normal[o, i, 2] = n0, n1, n2
+            node_gap[o, i] = d - radii[_locate(offsets, node_X[i])[0]]
+            seg = node_seg[i]
+            _legendre(2.0 * (node_X[i] - offsets[seg]) / seg_len[seg] - 1.0, P, 0)
+            _strain_at(P, 0, q, seg * D, comps, xi)
+            slope_n[i] = _slope(g_nodes[i], xi, n0, n1, n2)
+        Xs, gap, slope = _sample_gaps(tab, q, g_nodes, kind, prm, pose, near, sub, node_gap[o],
+                                      slope_n, w)
         for k in range(S - 1):
-            if min(gap[k], gap[k + 1]) >= law.near:
+            if min(gap[k], gap[k + 1]) >= near:
                 continue
             up_a, up_b = slope[k] >= 0, slope[k + 1] >= 0
             if up_a == up_b:
                 continue
             sign = 1.0 if up_b else -1.0
-            cand_X[nc] = _refine(tab, q, g_nodes, k // sub, Xs[k], Xs[k + 1], slope[k],
-                                 slope[k + 1], sign, kinds[o], prms[o], poses[o], w)
-            cand_o[nc], cand_s[nc] = o, sign
+            cand[nc, 0] = _refine(tab, q, g_nodes, k // sub, Xs[k], Xs[k + 1], slope[k],
+                                  slope[k + 1], sign, kind, prm, pose, w)
+            cand[nc, 1], cand[nc, 2] = o, sign
             nc += 1
-        if slope[S - 1] < 0 and gap[S - 1] < law.near:
-            cand_X[nc], cand_o[nc], cand_s[nc] = L, o, 1.0
+        if slope[S - 1] < 0 and gap[S - 1] < near:
+            cand[nc, 0], cand[nc, 1], cand[nc, 2] = L, o, 1.0
             nc += 1
-    return cand_X[:nc], cand_o[:nc], cand_s[:nc]
+    return cand[:nc]
 
 
 @_kernel
@@ -973,145 +1133,146 @@ def _softplus(x):
 
 
 @_kernel
+def _contact_point(tab, q, g_nodes, J_nodes, X, sign, kind, prm, pose, law, w, g, J, row,
+                   Q, Kc, grad, D, tmp, gxq, H):
+    """
+    Evaluate one contact point at X: fill g, J, its row of numbers and the loads.
+
+    Returns False (nothing added) when the gap is beyond the cutoff. Adds the generalised
+    force ``D^T f`` to Q and to Kc the material term ``-D^T df/dp D`` and the sliding of the
+    contact point (a critical point of the gap over X: ``lambda gXq^T gXq / gXX``).
+    """
+    comps, seg_len = tab.comps, tab.seg_len
+    nm, ncomp = tab.n_modes, comps.shape[0]
+    n = q.shape[0]
+    P, Xw = w.P, w.X
+    xi = Xw[3]
+    _point_frame(q, tab, g_nodes, J_nodes, X, True, w, g, J)
+    seg, xloc = _locate(tab.offsets, X)
+    _legendre(2.0 * xloc / seg_len[seg] - 1.0, P, 0)
+    _strain_at(P, 0, q, seg * nm * ncomp, comps, xi)
+    d, n0, n1, n2 = _sdf_world(kind, prm, pose, g[0, 3], g[1, 3], g[2, 3], True, H)
+    rad = tab.radii[seg]
+    gap = d - rad
+    if gap > law.cutoff:
+        return False
+    nv = (n0, n1, n2)
+    kv = (xi[1] * xi[5] - xi[2] * xi[4], xi[2] * xi[3] - xi[0] * xi[5],
+          xi[0] * xi[4] - xi[1] * xi[3])
+    tv = np.empty(3)
+    Htv = np.empty(3)
+    for r in range(3):
+        tv[r] = g[r, 0] * xi[3] + g[r, 1] * xi[4] + g[r, 2] * xi[5]
+    gxx = 0.0
+    for r in range(3):
+        Htv[r] = H[r, 0] * tv[0] + H[r, 1] * tv[1] + H[r, 2] * tv[2]
+        gxx += tv[r] * Htv[r] + nv[r] * (g[r, 0] * kv[0] + g[r, 1] * kv[1] + g[r, 2] * kv[2])
+    z = -gap / law.smoothing
+    pen = law.smoothing * _softplus(z)
+    force = law.stiffness * pen * (1.0 + pen / law.stiffening)
+    dforce = -law.stiffness * 0.5 * (1.0 + math.tanh(0.5 * z)) \
+        * (1.0 + 2.0 * pen / law.stiffening)
+    row[C_X], row[C_SIGN], row[C_GAP], row[C_RAD] = X, sign, gap, rad
+    for r in range(3):
+        row[C_P + r] = g[r, 3]
+        row[C_N + r] = nv[r]
+        row[C_F + r] = sign * force * nv[r]
+    # D = R J_v: the world motion of the backbone point per dq.
+    for r in range(3):
+        for col in range(n):
+            D[r, col] = g[r, 0] * J[3, col] + g[r, 1] * J[4, col] + g[r, 2] * J[5, col]
+    for col in range(n):
+        grad[col] = nv[0] * D[0, col] + nv[1] * D[1, col] + nv[2] * D[2, col]
+        Q[col] += row[C_F] * D[0, col] + row[C_F + 1] * D[1, col] + row[C_F + 2] * D[2, col]
+    # -D^T df/dp D, df/dp = sign (lambda' n n^T + lambda H).
+    for a in range(n):
+        for r in range(3):
+            u = 0.0
+            for s in range(3):
+                u += D[s, a] * (sign * dforce * nv[s] * nv[r] + sign * force * H[s, r])
+            if u != 0.0:
+                for b in range(n):
+                    Kc[a, b] -= u * D[r, b]
+    if X < tab.offsets[tab.offsets.shape[0] - 1] - TIP_GUARD_M and sign * gxx > SLIDE_FLOOR:
+        # gXq = (H p')^T D + n^T d p'/dq, d p'/dq = R (-nu^ J_w + Phi_nu).
+        for col in range(n):
+            w0, w1, w2 = J[0, col], J[1, col], J[2, col]
+            tmp[0, col] = -(xi[4] * w2 - xi[5] * w1)
+            tmp[1, col] = -(xi[5] * w0 - xi[3] * w2)
+            tmp[2, col] = -(xi[3] * w1 - xi[4] * w0)
+        for ci in range(ncomp):
+            comp = comps[ci]
+            if comp >= 3:
+                for j in range(nm):
+                    tmp[comp - 3, seg * nm * ncomp + ci * nm + j] += P[0, j]
+        nb = (g[0, 0] * n0 + g[1, 0] * n1 + g[2, 0] * n2, g[0, 1] * n0 + g[1, 1] * n1
+              + g[2, 1] * n2, g[0, 2] * n0 + g[1, 2] * n1 + g[2, 2] * n2)     # R^T n
+        for col in range(n):
+            s = 0.0
+            for r in range(3):
+                s += Htv[r] * D[r, col] + nb[r] * tmp[r, col]
+            gxq[col] = s
+        coef = sign * force / gxx
+        for a in range(n):
+            u = coef * gxq[a]
+            for b in range(n):
+                Kc[a, b] += u * gxq[b]
+    return True
+
+
+@_kernel
 def penalty_contacts(tab, q, g_nodes, J_nodes, kinds, prms, poses, law):
     """
-    Return the contact points and their loads for the kernel-side arrays of contact.py.
+    Return the contact points of a shape and their loads.
 
-    Returns (X, obstacle, sign, gap, backbone point, normal, force, radius, pose, Jacobian,
-    generalised force Q, tangent part Kc, step rows A, step lower bounds lo, node gaps).
-    ``Kc`` holds the material term ``-D^T df/dp D`` and the sliding of each contact point
-    (a critical point of the gap over X: ``lambda gXq^T gXq / gXX``); the geometric
-    (dead-load) part comes with the other point loads in :func:`geometric_stiffness`.
+    Returns (rows (C, C_COLS): X, obstacle, sign, gap, backbone point, normal, force,
+    radius; poses (C, 4, 4); Jacobians (C, 6, n); generalised force Q (n,); tangent part Kc
+    (n, n); step rows A (R, n) and lower bounds lo (R,); node gaps (O, N)). Kc holds the
+    material and sliding terms; the geometric (dead-load) part comes with the other point
+    loads in :func:`geometric_stiffness`. Step rows: each contact (ridges aside) may press
+    to ``step_depth`` or twice its depth, each node now outside at most ``step_depth`` in.
     """
     N = tab.node_X.shape[0]
     n_obj = kinds.shape[0]
     n = q.shape[0]
-    L = tab.offsets[-1]
+    w = scratch(tab.n_modes, tab.n_modes * tab.comps.shape[0])
     node_gap = np.empty((n_obj, N))
     node_normal = np.empty((n_obj, N, 3))
-    cX, co, cs = _find(tab, q, g_nodes, kinds, prms, poses, law, node_gap, node_normal)
-    C = cX.shape[0]
-    keep = np.zeros(C, dtype=np.bool_)
-    w = _work(tab.n_modes, tab.n_modes * tab.comps.shape[0])
+    cand = _find(tab, q, g_nodes, kinds, prms, poses, law, node_gap, node_normal, w)
+    C = cand.shape[0]
+    rows = np.empty((C, C_COLS))
     g = np.empty((C, 4, 4))
     J = np.zeros((C, 6, n))
-    gap = np.empty(C)
-    nrm = np.empty((C, 3))
-    f = np.empty((C, 3))
-    rad = np.empty(C)
+    grad = np.empty((C, n))
     Q = np.zeros(n)
     Kc = np.zeros((n, n))
-    grad = np.zeros((C, n))
     H = np.empty((3, 3))
-    scratch = np.empty((5, 3))
-    xi = np.empty(6)
-    P = np.empty(tab.n_modes)
     D = np.empty((3, n))
-    p = np.empty(3)
-    tv, pp, Htv, kv, nb = np.empty(3), np.empty(3), np.empty(3), np.empty(3), np.empty(3)
-    dfdp = np.empty((3, 3))
-    gxq = np.empty(n)
     tmp = np.empty((3, n))
-    nm, ncomp = tab.n_modes, tab.comps.shape[0]
+    gxq = np.empty(n)
+    kept = 0
     for c in range(C):
-        X = cX[c]
-        _point_frame(tab, q, g_nodes, J_nodes, X, True, w, g[c], J[c])
-        seg, xloc = _locate(tab, X)
-        _strain(tab, q, seg, xloc, P, xi)
-        for r in range(3):
-            p[r] = g[c, r, 3]
-        d = _sdf_world(kinds[co[c]], prms[co[c]], poses[co[c]], p, True, nrm[c], H, scratch)
-        rad[c] = tab.radii[seg]
-        gap[c] = d - rad[c]
-        if gap[c] > law.cutoff:
-            continue
-        keep[c] = True
-        sign = cs[c]
-        R = g[c, :3, :3]
-        _cross(xi[:3], xi[3:], kv)
-        for r in range(3):
-            tv[r] = R[r, 0] * xi[3] + R[r, 1] * xi[4] + R[r, 2] * xi[5]
-            pp[r] = R[r, 0] * kv[0] + R[r, 1] * kv[1] + R[r, 2] * kv[2]
-        gxx = 0.0
-        for r in range(3):
-            Htv[r] = H[r, 0] * tv[0] + H[r, 1] * tv[1] + H[r, 2] * tv[2]
-        for r in range(3):
-            gxx += tv[r] * Htv[r]
-        for r in range(3):
-            gxx += nrm[c, r] * pp[r]
-        z = -gap[c] / law.smoothing
-        pen = law.smoothing * _softplus(z)
-        force = law.stiffness * pen * (1.0 + pen / law.stiffening)
-        dforce = -law.stiffness * 0.5 * (1.0 + math.tanh(0.5 * z)) \
-            * (1.0 + 2.0 * pen / law.stiffening)
-        for r in range(3):
-            f[c, r] = sign * force * nrm[c, r]
-            for s in range(3):
-                dfdp[r, s] = sign * dforce * nrm[c, r] * nrm[c, s] + sign * force * H[r, s]
-        # D = R J_v: the world motion of the backbone point per dq.
-        for r in range(3):
-            for col in range(n):
-                D[r, col] = R[r, 0] * J[c, 3, col] + R[r, 1] * J[c, 4, col] \
-                    + R[r, 2] * J[c, 5, col]
-        for col in range(n):
-            s = 0.0
-            for r in range(3):
-                s += nrm[c, r] * D[r, col]
-            grad[c, col] = s
-            s = 0.0
-            for r in range(3):
-                s += f[c, r] * D[r, col]
-            Q[col] += s
-        for a in range(n):
-            for r in range(3):
-                u = 0.0
-                for s in range(3):
-                    u += D[s, a] * dfdp[s, r]
-                if u != 0.0:
-                    for b in range(n):
-                        Kc[a, b] -= u * D[r, b]
-        if X < L - TIP_GUARD_M and sign * gxx > SLIDE_FLOOR:
-            # gXq = (H p')^T D + n^T d p'/dq, d p'/dq = R (-nu^ J_w + Phi_nu).
-            for r in range(3):
-                nb[r] = R[0, r] * nrm[c, 0] + R[1, r] * nrm[c, 1] + R[2, r] * nrm[c, 2]
-            for col in range(n):
-                w0, w1, w2 = J[c, 0, col], J[c, 1, col], J[c, 2, col]
-                tmp[0, col] = -(xi[4] * w2 - xi[5] * w1)
-                tmp[1, col] = -(xi[5] * w0 - xi[3] * w2)
-                tmp[2, col] = -(xi[3] * w1 - xi[4] * w0)
-            for ci in range(ncomp):
-                comp = tab.comps[ci]
-                if comp >= 3:
-                    for j in range(nm):
-                        tmp[comp - 3, seg * nm * ncomp + ci * nm + j] += P[j]
-            for col in range(n):
-                s = 0.0
-                for r in range(3):
-                    s += Htv[r] * D[r, col] + nb[r] * tmp[r, col]
-                gxq[col] = s
-            coef = sign * force / gxx
-            for a in range(n):
-                u = coef * gxq[a]
-                for b in range(n):
-                    Kc[a, b] += u * gxq[b]
-    idx = np.nonzero(keep)[0]
-    # Step rows: each contact (ridges aside) may press to step_depth or twice its depth,
-    # each node now outside at most step_depth in (linearised gaps).
-    rows = 0
-    for c in idx:
-        if cs[c] > 0:
-            rows += 1
+        o = int(cand[c, 1])
+        if _contact_point(tab, q, g_nodes, J_nodes, cand[c, 0], cand[c, 2], kinds[o], prms[o],
+                          poses[o], law, w, g[kept], J[kept], rows[kept], Q, Kc, grad[kept], D,
+                          tmp, gxq, H):
+            rows[kept, C_OBJ] = o
+            kept += 1
+    n_rows = 0
+    for c in range(kept):
+        n_rows += rows[c, C_SIGN] > 0
     for o in range(n_obj):
         for i in range(N):
-            if node_gap[o, i] > 0:
-                rows += 1
-    A = np.empty((rows, n))
-    lo = np.empty(rows)
+            n_rows += node_gap[o, i] > 0
+    A = np.empty((n_rows, n))
+    lo = np.empty(n_rows)
     r = 0
-    for c in idx:
-        if cs[c] > 0:
-            A[r] = grad[c]
-            lo[r] = min(2.0 * gap[c], -law.step_depth) - gap[c]
+    for c in range(kept):
+        if rows[c, C_SIGN] > 0:
+            gap = rows[c, C_GAP]
+            for col in range(n):
+                A[r, col] = grad[c, col]
+            lo[r] = min(2.0 * gap, -law.step_depth) - gap
             r += 1
     for o in range(n_obj):
         for i in range(N):
@@ -1125,11 +1286,73 @@ def penalty_contacts(tab, q, g_nodes, J_nodes, kinds, prms, poses, law):
                     A[r, col] = s
                 lo[r] = -law.step_depth - node_gap[o, i]
                 r += 1
-    pts = np.empty((idx.shape[0], 3))
-    for a in range(idx.shape[0]):
-        pts[a] = g[idx[a], :3, 3]
-    return (cX[idx], co[idx], cs[idx], gap[idx], pts, nrm[idx], f[idx], rad[idx], g[idx],
-            J[idx], Q, Kc, A, lo, node_gap)
+    return rows[:kept], g[:kept], J[:kept], Q, Kc, A, lo, node_gap
+
+
+# Spence's integral by Cephes' rational approximation (S. L. Moshier), the one
+# scipy.special.spence uses, so the penalty potential matches scipy to rounding.
+_SPENCE_A = (4.65128586073990045278E-5, 7.31589045238094711071E-3, 1.33847639578309018650E-1,
+             8.79691311754530315341E-1, 2.71149851196553469920E0, 4.25697156008121755724E0,
+             3.29771340985225106936E0, 1.00000000000000000126E0)
+_SPENCE_B = (6.90990488912553276999E-4, 2.54043763932544379113E-2, 2.82974860602568089943E-1,
+             1.41172597751831069617E0, 3.63800533345137075418E0, 5.03278880143316990390E0,
+             3.54771340985225096217E0, 9.99999999999999998740E-1)
+
+
+@_kernel
+def spence(x):
+    """Return Spence's integral -int_1^x log t / (t - 1) dt for x >= 0 (NaN below)."""
+    if x < 0.0:
+        return np.nan
+    if x == 1.0:
+        return 0.0
+    if x == 0.0:
+        return math.pi * math.pi / 6.0
+    flag = 0
+    if x > 2.0:
+        x = 1.0 / x
+        flag |= 2
+    if x > 1.5:
+        w = (1.0 / x) - 1.0
+        flag |= 2
+    elif x < 0.5:
+        w = -x
+        flag |= 1
+    else:
+        w = x - 1.0
+    pa, pb = _SPENCE_A[0], _SPENCE_B[0]
+    for i in range(1, 8):
+        pa = pa * w + _SPENCE_A[i]
+        pb = pb * w + _SPENCE_B[i]
+    y = -w * pa / pb
+    if flag & 1:
+        y = (math.pi * math.pi) / 6.0 - math.log(x) * math.log(1.0 - x) - y
+    if flag & 2:
+        z = math.log(x)
+        y = -0.5 * z * z - y
+    return y
+
+
+@_kernel
+def penalty_energy(rows, stiffness, smoothing, stiffening):
+    """
+    Return the penalty potential of the contacts: sum of sign x (smooth part + stiffening).
+
+    Smooth part ``int_gap^inf k pen = k delta^2 (-Li2(-e^z))``, z = -gap / delta,
+    ``-Li2(-e^z) = -spence(1 + e^z)`` (its asymptote beyond z = 30); the stiffening part
+    ``k pen^3 / (3 p0)`` taken unsmoothed (it only serves as a merit).
+    """
+    e = 0.0
+    for c in range(rows.shape[0]):
+        gap = rows[c, C_GAP]
+        z = -gap / smoothing
+        if z > 30:
+            smooth = z ** 2 / 2 + math.pi ** 2 / 6 - math.exp(-z)
+        else:
+            smooth = -spence(1.0 + math.exp(z))
+        e += rows[c, C_SIGN] * (stiffness * smoothing ** 2 * smooth
+                                + stiffness * max(0.0, -gap) ** 3 / (3 * stiffening))
+    return e
 
 
 # -- loads ---------------------------------------------------------------------------------
@@ -1206,15 +1429,29 @@ def _wrench(g, F, M, out):
 
 
 @_kernel
-def _moment_rate(g, J, f, out):
-    """Write d(p x f)/dq = -f^ R J_v (3, n) for a dead force f at frame g into out."""
+def _moment_and_rate(g, J, f, m, fm, dfm):
+    """Write fm = m + p x f (moment about the origin) and d(p x f)/dq = -f^ R J_v (3, n)."""
+    p0, p1, p2 = g[0, 3], g[1, 3], g[2, 3]
+    fm[0] = m[0] + (p1 * f[2] - p2 * f[1])
+    fm[1] = m[1] + (p2 * f[0] - p0 * f[2])
+    fm[2] = m[2] + (p0 * f[1] - p1 * f[0])
     for col in range(J.shape[1]):
         D0 = g[0, 0] * J[3, col] + g[0, 1] * J[4, col] + g[0, 2] * J[5, col]
         D1 = g[1, 0] * J[3, col] + g[1, 1] * J[4, col] + g[1, 2] * J[5, col]
         D2 = g[2, 0] * J[3, col] + g[2, 1] * J[4, col] + g[2, 2] * J[5, col]
-        out[0, col] = -(-f[2] * D1 + f[1] * D2)
-        out[1, col] = -(f[2] * D0 - f[0] * D2)
-        out[2, col] = -(-f[1] * D0 + f[0] * D1)
+        dfm[0, col] = f[2] * D1 - f[1] * D2
+        dfm[1, col] = f[0] * D2 - f[2] * D0
+        dfm[2, col] = f[1] * D0 - f[0] * D1
+
+
+@_kernel
+def _bin_add(Fb, Mb, dMb, b, f, fm, dfm):
+    """Add a load (force f, moment fm about the origin, its rate dfm) to bin b."""
+    for r in range(3):
+        Fb[b, r] += f[r]
+        Mb[b, r] += fm[r]
+        for col in range(dfm.shape[1]):
+            dMb[b, r, col] += dfm[r, col]
 
 
 @_kernel
@@ -1229,57 +1466,58 @@ def geometric_stiffness(tab, q, g_nodes, J_nodes, grav_f, pt_X, pt_g, pt_J, pt_f
     load's own segment is integrated by a Gauss rule on [segment start, X] and the segments
     before it on the regular points: ``Qp = int_0^X Phi^T Lambda dX``, the continuum virtual
     work, exact for a constant internal wrench (pure moment, tendon) at any basis order.
-    Qp covers the points flagged in ``pt_quad``; Kg all loads.
+    Qp covers the points flagged in ``pt_quad``; Kg all loads. Loads go into bins: bin b is
+    distal to Gauss points 0..b-1.
     """
+    comps, offsets, seg_len = tab.comps, tab.offsets, tab.seg_len
+    gauss_X, gauss_node, gauss_seg, gauss_w = tab.gauss_X, tab.gauss_node, tab.gauss_seg, \
+        tab.gauss_w
+    rule_x, rule_w = tab.rule_x, tab.rule_w
+    nm = tab.n_modes
+    D = nm * comps.shape[0]
     n = q.shape[0]
-    K = tab.gauss_X.shape[0]
-    G = tab.rule_x.shape[0]
+    K = gauss_X.shape[0]
     Fb = np.zeros((K + 1, 3))
     Mb = np.zeros((K + 1, 3))
     dMb = np.zeros((K + 1, 3, n))
-    Fp = np.zeros((K + 1, 3))
+    Fp = np.zeros((K + 1, 3))              # the loads whose residual is in quadrature form
     Mp = np.zeros((K + 1, 3))
     Kg = np.zeros((n, n))
     Qp = np.zeros(n)
-    w = _work(tab.n_modes, tab.n_modes * tab.comps.shape[0])
-    P = np.empty(tab.n_modes)
+    w = scratch(nm, D)
+    P = np.empty((1, nm))
     fm = np.empty(3)
     dfm = np.empty((3, n))
     dl = np.empty((6, n))
     lam = np.empty(6)
     gq = np.empty((4, 4))
     Jq = np.empty((6, n))
+    zero = np.zeros(3)
     for j in range(grav_f.shape[0]):
-        node = tab.gauss_node[j]
-        _cross(g_nodes[node, :3, 3], grav_f[j], fm)
-        _moment_rate(g_nodes[node], J_nodes[node], grav_f[j], dfm)
-        Fb[j + 1] += grav_f[j]
-        Mb[j + 1] += fm
-        dMb[j + 1] += dfm
+        node = gauss_node[j]
+        _moment_and_rate(g_nodes[node], J_nodes[node], grav_f[j], zero, fm, dfm)
+        _bin_add(Fb, Mb, dMb, j + 1, grav_f[j], fm, dfm)
     for i in range(pt_X.shape[0]):
-        _cross(pt_g[i, :3, 3], pt_f[i], fm)
-        fm += pt_m[i]
-        _moment_rate(pt_g[i], pt_J[i], pt_f[i], dfm)
-        seg, x = _locate(tab, pt_X[i])
-        start = tab.offsets[seg]
-        b = np.searchsorted(tab.gauss_X, start - 1e-15, side='right')
+        _moment_and_rate(pt_g[i], pt_J[i], pt_f[i], pt_m[i], fm, dfm)
+        seg, x = _locate(offsets, pt_X[i])
+        start = offsets[seg]
+        b = _bisect_right(gauss_X, start - LOCATE_EPS_M)
         if x > 0.0:
-            for k in range(G):
-                Xq = start + x * (tab.rule_x[k] + 1) / 2
-                wq = x * tab.rule_w[k] / 2
-                _point_frame(tab, q, g_nodes, J_nodes, Xq, True, w, gq, Jq)
-                _legendre(2.0 * (Xq - start) / tab.seg_len[seg] - 1.0, P)
+            for k in range(rule_x.shape[0]):
+                Xq = start + x * (rule_x[k] + 1) / 2
+                wq = x * rule_w[k] / 2
+                _point_frame(q, tab, g_nodes, J_nodes, Xq, True, w, gq, Jq)
+                _legendre(2.0 * (Xq - start) / seg_len[seg] - 1.0, P, 0)
                 _wrench_rate(gq, Jq, pt_f[i], fm, dfm, dl)
-                _add_phi_t(tab, seg, P, wq, dl, Kg)
+                _add_phi_t(comps, seg * D, P, wq, dl, Kg)
                 if pt_quad[i]:
                     _wrench(gq, pt_f[i], fm, lam)
-                    _add_phi_t_vec(tab, seg, P, wq, lam, Qp)
+                    _add_phi_t_vec(comps, seg * D, P, wq, lam, Qp)
+        _bin_add(Fb, Mb, dMb, b, pt_f[i], fm, dfm)
         if pt_quad[i]:
-            Fp[b] += pt_f[i]
-            Mp[b] += fm
-        Fb[b] += pt_f[i]
-        Mb[b] += fm
-        dMb[b] += dfm
+            for r in range(3):
+                Fp[b, r] += pt_f[i, r]
+                Mp[b, r] += fm[r]
     # Gauss point k collects every load in bins > k (strictly distal).
     F = np.zeros(3)
     M = np.zeros(3)
@@ -1287,17 +1525,19 @@ def geometric_stiffness(tab, q, g_nodes, J_nodes, grav_f, pt_X, pt_g, pt_J, pt_f
     Fq = np.zeros(3)
     Mq = np.zeros(3)
     for k in range(K - 1, -1, -1):
-        F += Fb[k + 1]
-        M += Mb[k + 1]
-        dM += dMb[k + 1]
-        Fq += Fp[k + 1]
-        Mq += Mp[k + 1]
-        node, seg = tab.gauss_node[k], tab.gauss_seg[k]
-        _legendre(2.0 * (tab.gauss_X[k] - tab.offsets[seg]) / tab.seg_len[seg] - 1.0, P)
+        for r in range(3):
+            F[r] += Fb[k + 1, r]
+            M[r] += Mb[k + 1, r]
+            Fq[r] += Fp[k + 1, r]
+            Mq[r] += Mp[k + 1, r]
+            for col in range(n):
+                dM[r, col] += dMb[k + 1, r, col]
+        node, seg = gauss_node[k], gauss_seg[k]
+        _legendre(2.0 * (gauss_X[k] - offsets[seg]) / seg_len[seg] - 1.0, P, 0)
         _wrench_rate(g_nodes[node], J_nodes[node], F, M, dM, dl)
-        _add_phi_t(tab, seg, P, tab.gauss_w[k], dl, Kg)
+        _add_phi_t(comps, seg * D, P, gauss_w[k], dl, Kg)
         _wrench(g_nodes[node], Fq, Mq, lam)
-        _add_phi_t_vec(tab, seg, P, tab.gauss_w[k], lam, Qp)
+        _add_phi_t_vec(comps, seg * D, P, gauss_w[k], lam, Qp)
     return Qp, Kg
 
 
@@ -1307,68 +1547,75 @@ def tendon_terms(tab, xi_gauss, td_d, td_on, tension):
     Return (Q, dQ/dq, energy) of thread-like tendons; slack (negative) tensions pull nothing.
 
     A tendon at body offset d runs along ``v = nu + k x d``; its wrench on the section is
-    ``-T [d x t; t]``, t = v / |v|, and its potential T times its length.
+    ``-T [d x t; t]``, t = v / |v|, its potential T times its length, and
+    ``d wrench / d xi = -T [d^; I] (I - t t^T) / |v| [-d^, I]``.
     """
-    n = tab.n_modes * tab.comps.shape[0] * tab.seg_len.shape[0]
+    comps, offsets, seg_len = tab.comps, tab.offsets, tab.seg_len
+    gauss_X, gauss_seg, gauss_w = tab.gauss_X, tab.gauss_seg, tab.gauss_w
+    nm, nc = tab.n_modes, comps.shape[0]
+    D = nm * nc
+    n = D * seg_len.shape[0]
     Q = np.zeros(n)
     dQ = np.zeros((n, n))
     energy = 0.0
-    P = np.empty(tab.n_modes)
-    v = np.empty(3)
-    t = np.empty(3)
+    P = np.empty((1, nm))
     lam = np.empty(6)
     dlam = np.empty((6, 6))
-    Bm = np.empty((6, 3))
-    Pm = np.empty((3, 3))
-    Cm = np.empty((3, 6))
-    BP = np.empty((6, 3))
-    BPC = np.empty((6, 6))
-    dh = np.empty((3, 3))
+    B = np.empty((6, 3))              # [d^; I] (I - t t^T) / |v|
     tmp = np.empty((6, n))
-    dxt = np.empty(3)
-    nm, nc = tab.n_modes, tab.comps.shape[0]
     for k in range(xi_gauss.shape[0]):
-        xi = xi_gauss[k]
-        seg = tab.gauss_seg[k]
-        lam[:] = 0.0
-        dlam[:, :] = 0.0
+        seg = gauss_seg[k]
+        for i in range(6):
+            lam[i] = 0.0
+            for j in range(6):
+                dlam[i, j] = 0.0
         for a in range(td_d.shape[0]):
             T = max(tension[a], 0.0) * td_on[k, a]
-            d = td_d[a]
-            _cross(xi[:3], d, v)
-            for i in range(3):
-                v[i] += xi[3 + i]
-            nv = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
-            for i in range(3):
-                t[i] = v[i] / nv
-            _cross(d, t, dxt)
-            for i in range(3):
-                lam[i] -= T * dxt[i]
-                lam[3 + i] -= T * t[i]
-            energy += tab.gauss_w[k] * T * nv
-            # d lam / d xi = -T [d^; I] (I - t t^T) / |v| [-d^, I]
-            _skew(d, dh)
+            d0, d1, d2 = td_d[a, 0], td_d[a, 1], td_d[a, 2]
+            k0, k1, k2 = xi_gauss[k, 0], xi_gauss[k, 1], xi_gauss[k, 2]
+            v0 = (k1 * d2 - k2 * d1) + xi_gauss[k, 3]
+            v1 = (k2 * d0 - k0 * d2) + xi_gauss[k, 4]
+            v2 = (k0 * d1 - k1 * d0) + xi_gauss[k, 5]
+            nv = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+            t = (v0 / nv, v1 / nv, v2 / nv)
+            lam[0] -= T * (d1 * t[2] - d2 * t[1])
+            lam[1] -= T * (d2 * t[0] - d0 * t[2])
+            lam[2] -= T * (d0 * t[1] - d1 * t[0])
+            lam[3] -= T * t[0]
+            lam[4] -= T * t[1]
+            lam[5] -= T * t[2]
+            energy += gauss_w[k] * T * nv
+            dh = ((0.0, -d2, d1), (d2, 0.0, -d0), (-d1, d0, 0.0))
             for i in range(3):
                 for j in range(3):
-                    Bm[i, j] = dh[i, j]
-                    Bm[3 + i, j] = 1.0 if i == j else 0.0
-                    Pm[i, j] = ((1.0 if i == j else 0.0) - t[i] * t[j]) / nv
-                    Cm[i, j] = -dh[i, j]
-                    Cm[i, 3 + j] = 1.0 if i == j else 0.0
-            _matmul(Bm, Pm, BP)
-            _matmul(BP, Cm, BPC)
+                    pij = ((1.0 if i == j else 0.0) - t[i] * t[j]) / nv
+                    B[3 + i, j] = pij
+                    B[i, j] = 0.0
+            for i in range(3):
+                for j in range(3):
+                    s = 0.0
+                    for m in range(3):
+                        s += dh[i][m] * B[3 + m, j]
+                    B[i, j] = s
             for i in range(6):
-                for j in range(6):
-                    dlam[i, j] -= T * BPC[i, j]
-        _legendre(2.0 * (tab.gauss_X[k] - tab.offsets[seg]) / tab.seg_len[seg] - 1.0, P)
-        _add_phi_t_vec(tab, seg, P, tab.gauss_w[k], lam, Q)
+                for j in range(3):
+                    # [.., -d^] block, then [.., I]
+                    s = 0.0
+                    for m in range(3):
+                        s += B[i, m] * -dh[m][j]
+                    dlam[i, j] -= T * s
+                    dlam[i, 3 + j] -= T * B[i, j]
+        _legendre(2.0 * (gauss_X[k] - offsets[seg]) / seg_len[seg] - 1.0, P, 0)
+        _add_phi_t_vec(comps, seg * D, P, gauss_w[k], lam, Q)
         # dQ += w Phi^T dlam Phi: dlam Phi first (6, n), then Phi^T.
-        tmp[:, :] = 0.0
+        for r in range(6):
+            for col in range(n):
+                tmp[r, col] = 0.0
         for ci in range(nc):
-            c = tab.comps[ci]
+            c = comps[ci]
             for j in range(nm):
-                col = seg * nm * nc + ci * nm + j
+                col = seg * D + ci * nm + j
                 for r in range(6):
-                    tmp[r, col] = dlam[r, c] * P[j]
-        _add_phi_t(tab, seg, P, tab.gauss_w[k], tmp, dQ)
+                    tmp[r, col] = dlam[r, c] * P[0, j]
+        _add_phi_t(comps, seg * D, P, gauss_w[k], tmp, dQ)
     return Q, dQ, energy

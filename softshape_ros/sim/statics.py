@@ -167,6 +167,8 @@ class Statics:
         # Gravity: lumped weights at the Gauss nodes (world force).
         self.grav_f = (rod.spec.density * rod.area[rod.gauss_seg] * rod.gauss_w)[:, None] \
             * rod.gravity[None, :]
+        self._no_moment = np.zeros_like(self.grav_f)
+        self._no_force = np.zeros((0, 3))
 
     # -- loads -------------------------------------------------------------------------
     def tendon_terms(self, kin: Kinematics, tension: np.ndarray):
@@ -193,33 +195,34 @@ class Statics:
                  contact: ContactLaw | None = None) -> Assembly:
         """Residual ``K q - Q`` and its tangent at ``q`` (``factor`` scales u and loads)."""
         rod, tab = self.rod, self.rod.tables
+        amax = kernels.abs_max
         kin = rod.forward(q)
         Kq = rod.kdiag * kin.q
-        R = Kq.copy()
-        Kt = rod.K.copy()
-        scale = float(np.abs(Kq).max())
+        R = Kq
+        Kt = rod.K
+        scale = amax(Kq)
         energies = [0.5 * float(kin.q @ Kq)]
         u = np.asarray(u, dtype=float) * factor
         if len(self.chamber_idx):
             Qc = self.B_ch @ u[self.chamber_idx]
-            R -= Qc
+            R = R - Qc
             energies.append(-float(Qc @ kin.q))
-            scale = max(scale, float(np.abs(Qc).max()))
+            scale = max(scale, amax(Qc))
         if len(self.tendon_idx):
             Qt, dQt, et = self.tendon_terms(kin, u[self.tendon_idx])
-            R -= Qt
-            Kt -= dQt
+            R = R - Qt
+            Kt = Kt - dQt
             energies.append(et)
-            scale = max(scale, float(np.abs(Qt).max()))
-        grav = self.grav_f * factor if self.gravity_on else np.zeros((0, 3))
+            scale = max(scale, amax(Qt))
+        grav = self.grav_f * factor if self.gravity_on else self._no_force
         conservative = True
         if self.gravity_on:
             # Dead forces have potential -f.p; world moments in 3-D do not (path dependent).
             Qg, work = kernels.wrench_residual(kin.g, kin.J, tab.gauss_node, grav,
-                                               np.zeros_like(grav))
-            R -= Qg
+                                               self._no_moment)
+            R = R - Qg
             energies.append(-work)
-            scale = max(scale, float(np.abs(Qg).max()))
+            scale = max(scale, amax(Qg))
         points = []
         if loads:
             pl = self.point_loads(kin, list(loads), factor)
@@ -227,14 +230,14 @@ class Statics:
             energies.append(-work)
             conservative = not np.any(pl.m)
             if not pl.quad.any():
-                R -= Qu
-                scale = max(scale, float(np.abs(Qu).max()))
+                R = R - Qu
+                scale = max(scale, amax(Qu))
             points.append(pl)
         result = contact.evaluate(rod, kin) if contact is not None else None
         if result is not None and result.any:
-            R -= result.generalised_force
-            Kt += result.stiffness
-            scale = max(scale, float(np.abs(result.generalised_force).max()))
+            R = R - result.generalised_force
+            Kt = Kt + result.stiffness
+            scale = max(scale, amax(result.generalised_force))
             points.append(PointLoads(result.s_m, result.poses, result.jacobians,
                                      result.force_n, np.zeros_like(result.force_n),
                                      np.zeros(len(result.s_m), dtype=bool)))
@@ -247,9 +250,9 @@ class Statics:
         pending = None
         if pts.quad.any():
             Qp, Kg = geometric()
-            R -= Qp
-            Kt -= Kg
-            scale = max(scale, float(np.abs(Qp).max()))
+            R = R - Qp
+            Kt = Kt - Kg
+            scale = max(scale, amax(Qp))
         elif self.gravity_on or len(pts.X):
             pending = lambda: geometric()[1]  # noqa: E731  (tangent only, on demand)
         energies.append(result.energy if result is not None else 0.0)
@@ -288,7 +291,7 @@ class Statics:
                     depth -= 1
                 continue
             if depth >= max_depth:
-                r = float(np.abs(res.assembly.residual).max())
+                r = kernels.abs_max(res.assembly.residual)
                 raise SolverError(
                     f'statics did not converge: load factor {load_factor:.4f} failed after '
                     f'{total_iter} Newton iterations (residual {r:.3e}, '
@@ -298,7 +301,7 @@ class Statics:
         return q, last, total_iter
 
     def _converged(self, asm: Assembly, tol: float) -> bool:
-        return float(np.abs(asm.residual).max()) <= tol * asm.scale + RESIDUAL_FLOOR
+        return kernels.abs_max(asm.residual) <= tol * asm.scale + RESIDUAL_FLOOR
 
     def _newton(self, q, u, loads, load_factor, contact, tol, max_iter) -> NewtonResult:
         """
@@ -319,7 +322,7 @@ class Statics:
         radius = TRUST_START_M if contact is not None else np.inf
         mu = 0.0
         for it in range(1, max_iter + 1):
-            rn = float(np.abs(asm.residual).max())
+            rn = kernels.abs_max(asm.residual)
             if not np.isfinite(rn):
                 return NewtonResult(False, q, asm, it)
             if self._converged(asm, tol):
@@ -355,7 +358,7 @@ class Statics:
         dq = -kernels.cho_solve(L, asm.residual)
         if asm.contact is not None:
             dq = project_step(dq, L, asm.contact.step_rows, asm.contact.step_lower)
-        big = float(np.abs(dq).max())
+        big = kernels.abs_max(dq)
         if not np.isfinite(big):
             return None
         max_dq = MAX_TURN_RAD / rod.lengths.min()
@@ -382,7 +385,7 @@ class Statics:
         def wnorm(a):
             return float(np.sqrt(np.sum(a.residual ** 2 / kd)))
 
-        rn = float(np.abs(asm.residual).max())
+        rn = kernels.abs_max(asm.residual)
         slope = float(asm.residual @ dq)
         w0 = wnorm(asm)
         # Energy as merit away from the solution only: the point-load residual is its
@@ -391,7 +394,7 @@ class Statics:
         alpha = 1.0
         for _ in range(LINE_SEARCH_HALVINGS):
             trial = trial_at(q + alpha * dq)
-            if np.isfinite(float(np.abs(trial.residual).max())):
+            if np.isfinite(kernels.abs_max(trial.residual)):
                 wt = wnorm(trial)
                 ok = mu == 0.0 and alpha == 1.0 and wt < NEWTON_SHRINK * w0
                 if not ok and energy_merit and trial.energy is not None:
