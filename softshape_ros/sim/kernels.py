@@ -29,14 +29,27 @@ from numba import njit
 import numpy as np
 
 
+def _jit(fn, **kw):
+    """
+    Compile ``fn`` on first use with numpy's float semantics, its machine code cached on disk.
+
+    The cache goes beside this file (``__pycache__``), else to numba's user cache
+    (``NUMBA_CACHE_DIR`` or ``~/.cache``); with no writable place at all numba refuses to
+    cache and each process compiles for itself (~30 s of CPU for all kernels).
+    """
+    try:
+        return njit(cache=True, error_model='numpy', **kw)(fn)
+    except RuntimeError:        # "cannot cache function ...: no locator available"
+        return njit(cache=False, error_model='numpy', **kw)(fn)
+
+
 def _kernel(fn):
-    """Compile ``fn`` on first use, cached on disk, with numpy's float semantics (no checks)."""
-    return njit(cache=True, error_model='numpy')(fn)
+    return _jit(fn)
 
 
 def _inline(fn):
     """Compile ``fn`` into each caller (the hot Magnus step: no call overhead)."""
-    return njit(cache=True, error_model='numpy', inline='always')(fn)
+    return _jit(fn, inline='always')
 
 
 SMALL_ANGLE2 = 1e-4     # exp/dexp coefficients from their series below 0.01 rad (error < 1e-17)
@@ -163,8 +176,15 @@ def cholesky(H, L):
 @_kernel
 def cho_solve(L, b):
     """Return ``x`` with ``L L^T x = b``."""
+    x = np.empty(L.shape[0])
+    _cho_solve_into(L, b, x)
+    return x
+
+
+@_kernel
+def _cho_solve_into(L, b, x):
+    """Write ``x`` with ``L L^T x = b`` (x may not alias b)."""
     n = L.shape[0]
-    x = np.empty(n)
     for i in range(n):                      # L y = b
         s = b[i]
         for k in range(i):
@@ -175,7 +195,6 @@ def cho_solve(L, b):
         for k in range(i + 1, n):
             s -= L[k, i] * x[k]
         x[i] = s / L[i, i]
-    return x
 
 
 @_kernel
@@ -262,7 +281,7 @@ def project_step(dq, L, A, lo, max_active):
         solved = False
         while n_act > 0:
             for a in range(n_act):
-                Y[a] = cho_solve(L, A[act[a]])
+                _cho_solve_into(L, A[act[a]], Y[a])
             G = np.empty((n_act, n_act))
             rhs = np.empty(n_act)
             for a in range(n_act):
@@ -351,11 +370,11 @@ def _exp_into(om, E):
 
 
 @_kernel
-def _skew_into(x, o, S):
-    """Write the cross-product matrix of (x[o], x[o + 1], x[o + 2]) into S."""
-    S[0, 0], S[0, 1], S[0, 2] = 0.0, -x[o + 2], x[o + 1]
-    S[1, 0], S[1, 1], S[1, 2] = x[o + 2], 0.0, -x[o]
-    S[2, 0], S[2, 1], S[2, 2] = -x[o + 1], x[o], 0.0
+def _skew_into(a, b, c, S):
+    """Write the cross-product matrix of (a, b, c) into S."""
+    S[0, 0], S[0, 1], S[0, 2] = 0.0, -c, b
+    S[1, 0], S[1, 1], S[1, 2] = c, 0.0, -a
+    S[2, 0], S[2, 1], S[2, 2] = -b, a, 0.0
 
 
 @_kernel
@@ -369,8 +388,8 @@ def _dexp_blocks(om, th2, f1, f2, f3, f4, M):
     """
     W, V, W2, B2, B3, B4 = M[0], M[1], M[2], M[3], M[4], M[5]
     TR, TV = M[6], M[7]
-    _skew_into(om, 0, W)
-    _skew_into(om, 3, V)
+    _skew_into(om[0], om[1], om[2], W)
+    _skew_into(om[3], om[4], om[5], V)
     for i in range(3):
         for j in range(3):
             s = 0.0
@@ -426,25 +445,25 @@ def _adinv_apply(E, J, out, n_cols):
 
 
 @_kernel
-def _legendre(y, P, r):
-    """Fill row r of P with the Legendre polynomials P_0..P_{nm-1} at y."""
-    nm = P.shape[1]
-    P[r, 0] = 1.0
+def _legendre(y, P):
+    """Fill P with the Legendre polynomials P_0..P_{nm-1} at y."""
+    nm = P.shape[0]
+    P[0] = 1.0
     if nm > 1:
-        P[r, 1] = y
+        P[1] = y
     for j in range(2, nm):
-        P[r, j] = ((2 * j - 1) * y * P[r, j - 1] - (j - 1) * P[r, j - 2]) / j
+        P[j] = ((2 * j - 1) * y * P[j - 1] - (j - 1) * P[j - 2]) / j
 
 
 @_kernel
-def _strain_at(P, r, q, col0, comps, xi):
-    """Fill xi with the strain from the basis values in row r of P (segment columns col0..)."""
-    nm = P.shape[1]
+def _strain_at(P, q, col0, comps, xi):
+    """Fill xi with the strain from the basis values P (segment columns from col0)."""
+    nm = P.shape[0]
     xi[0], xi[1], xi[2], xi[3], xi[4], xi[5] = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     for ci in range(comps.shape[0]):
         s = 0.0
         for j in range(nm):
-            s += P[r, j] * q[col0 + ci * nm + j]
+            s += P[j] * q[col0 + ci * nm + j]
         xi[comps[ci]] = s
     xi[3] += 1.0
 
@@ -504,10 +523,11 @@ def _magnus(q, L, comps, col0, a, h, jac, P, X, E, M, U, TS):
     ``d om = h/2 (dx1 + dx2) + C4 h^2 (ad_x1 dx2 - ad_x2 dx1)``.
     """
     x1, x2, om = X[0], X[1], X[2]
-    _legendre(2.0 * (a + Z1 * h) / L - 1.0, P, 0)
-    _legendre(2.0 * (a + Z2 * h) / L - 1.0, P, 1)
-    _strain_at(P, 0, q, col0, comps, x1)
-    _strain_at(P, 1, q, col0, comps, x2)
+    P1, P2 = P[0], P[1]
+    _legendre(2.0 * (a + Z1 * h) / L - 1.0, P1)
+    _legendre(2.0 * (a + Z2 * h) / L - 1.0, P2)
+    _strain_at(P1, q, col0, comps, x1)
+    _strain_at(P2, q, col0, comps, x2)
     c2 = C4 * h ** 2
     b0 = x1[1] * x2[2] - x1[2] * x2[1]                      # [x1, x2] = ad_x1 x2
     b1 = x1[2] * x2[0] - x1[0] * x2[2]
@@ -536,10 +556,9 @@ def _magnus(q, L, comps, col0, a, h, jac, P, X, E, M, U, TS):
             _ad_column(x2, c, U[3])
             _t_apply(M, U[3], U[2])
             for j in range(nm):
-                hp = h / 2 * (P[0, j] + P[1, j])
+                hp = h / 2 * (P1[j] + P2[j])
                 for r in range(6):
-                    TS[r, ci * nm + j] = hp * U[0, r] + c2 * (P[1, j] * U[1, r]
-                                                              - P[0, j] * U[2, r])
+                    TS[r, ci * nm + j] = hp * U[0, r] + c2 * (P2[j] * U[1, r] - P1[j] * U[2, r])
 
 
 @_kernel
@@ -583,39 +602,65 @@ def forward(tab, q, jac):
     xi = np.empty((gauss_X.shape[0], 6))
     for i in range(gauss_X.shape[0]):
         s = gauss_seg[i]
-        _legendre(2.0 * (gauss_X[i] - offsets[s]) / seg_len[s] - 1.0, P, 0)
-        _strain_at(P, 0, q, s * D, comps, xi[i])
+        _legendre(2.0 * (gauss_X[i] - offsets[s]) / seg_len[s] - 1.0, P[0])
+        _strain_at(P[0], q, s * D, comps, xi[i])
     return g, J, xi
 
 
 @_kernel
-def _point_frame(q, tab, g_nodes, J_nodes, X, jac, w, g_out, J_out):
-    """Write the pose (and with ``jac`` the Jacobian) at X: a Magnus step from the node before."""
+def _at_node(node_X, X):
+    """Return the node index at X, or -1 if X is not a node; X is clipped to the rod."""
+    k = _bisect_left(node_X, X)
+    return k if k < node_X.shape[0] and node_X[k] == X else -1
+
+
+@_kernel
+def _point_frame(q, tab, g_nodes, J_nodes, X, w, g_out, J_out):
+    """Write the pose and the body Jacobian at X: a Magnus step from the node before it."""
     P, Xw, E, Ms, U, TS = w
     node_X, comps = tab.node_X, tab.comps
     N = node_X.shape[0]
     X = min(max(X, 0.0), node_X[N - 1])
-    k = _bisect_left(node_X, X)
-    if k < N and node_X[k] == X:
+    k = _at_node(node_X, X)
+    if k >= 0:
         for i in range(4):
             for j in range(4):
                 g_out[i, j] = g_nodes[k, i, j]
-        if jac:
-            for i in range(6):
-                for j in range(J_out.shape[1]):
-                    J_out[i, j] = J_nodes[k, i, j]
+        for i in range(6):
+            for j in range(J_out.shape[1]):
+                J_out[i, j] = J_nodes[k, i, j]
         return
     m = min(max(_bisect_right(node_X, X) - 1, 0), N - 2)
     seg = tab.int_seg[m]
     D = P.shape[1] * comps.shape[0]
-    _magnus(q, tab.seg_len[seg], comps, seg * D, tab.int_a[m], X - node_X[m], jac, P, Xw, E,
+    _magnus(q, tab.seg_len[seg], comps, seg * D, tab.int_a[m], X - node_X[m], True, P, Xw, E,
             Ms, U, TS)
     _pose_mul(g_nodes[m], E, g_out)
-    if jac:
-        _adinv_apply(E, J_nodes[m], J_out, J_out.shape[1])
-        for r in range(6):
-            for c in range(D):
-                J_out[r, seg * D + c] += TS[r, c]
+    _adinv_apply(E, J_nodes[m], J_out, J_out.shape[1])
+    for r in range(6):
+        for c in range(D):
+            J_out[r, seg * D + c] += TS[r, c]
+
+
+@_kernel
+def _point_pose(q, tab, g_nodes, X, w, g_out):
+    """Write the pose at X (no Jacobian)."""
+    P, Xw, E, Ms, U, TS = w
+    node_X, comps = tab.node_X, tab.comps
+    N = node_X.shape[0]
+    X = min(max(X, 0.0), node_X[N - 1])
+    k = _at_node(node_X, X)
+    if k >= 0:
+        for i in range(4):
+            for j in range(4):
+                g_out[i, j] = g_nodes[k, i, j]
+        return
+    m = min(max(_bisect_right(node_X, X) - 1, 0), N - 2)
+    seg = tab.int_seg[m]
+    D = P.shape[1] * comps.shape[0]
+    _magnus(q, tab.seg_len[seg], comps, seg * D, tab.int_a[m], X - node_X[m], False, P, Xw, E,
+            Ms, U, TS)
+    _pose_mul(g_nodes[m], E, g_out)
 
 
 @_kernel
@@ -625,9 +670,11 @@ def point_frames(tab, q, g_nodes, J_nodes, X, jac):
     w = scratch(tab.n_modes, tab.n_modes * tab.comps.shape[0])
     g = np.empty((X.shape[0], 4, 4))
     J = np.zeros((X.shape[0] if jac else 0, 6, n))
-    dummy = np.empty((6, n))
     for i in range(X.shape[0]):
-        _point_frame(q, tab, g_nodes, J_nodes, X[i], jac, w, g[i], J[i] if jac else dummy)
+        if jac:
+            _point_frame(q, tab, g_nodes, J_nodes, X[i], w, g[i], J[i])
+        else:
+            _point_pose(q, tab, g_nodes, X[i], w, g[i])
     return g, J
 
 
@@ -639,8 +686,8 @@ def strains(tab, q, X):
     xi = np.empty((X.shape[0], 6))
     for i in range(X.shape[0]):
         seg, x = _locate(tab.offsets, X[i])
-        _legendre(2.0 * x / tab.seg_len[seg] - 1.0, P, 0)
-        _strain_at(P, 0, q, seg * D, tab.comps, xi[i])
+        _legendre(2.0 * x / tab.seg_len[seg] - 1.0, P[0])
+        _strain_at(P[0], q, seg * D, tab.comps, xi[i])
     return xi
 
 
@@ -651,7 +698,7 @@ def basis_matrices(tab, seg, x, n):
     P = np.empty((1, nm))
     out = np.zeros((x.shape[0], 6, n))
     for i in range(x.shape[0]):
-        _legendre(2.0 * x[i] / tab.seg_len[seg[i]] - 1.0, P, 0)
+        _legendre(2.0 * x[i] / tab.seg_len[seg[i]] - 1.0, P[0])
         for ci in range(nc):
             for j in range(nm):
                 out[i, tab.comps[ci], seg[i] * nm * nc + ci * nm + j] = P[0, j]
@@ -682,8 +729,8 @@ def _add_phi_t_vec(comps, col0, P, weight, v, out):
 
 
 # -- obstacles: signed distance, unit gradient and Hessian ---------------------------------
-# Each kind takes a point of its own frame as scalars and returns (d, nx, ny, nz); with
-# ``hess`` it writes the distance's Hessian into H.
+# Each kind takes a point of its own frame as scalars, returns (d, nx, ny, nz) and writes
+# the distance's Hessian into H (always: a flag would compile each kind twice).
 @_kernel
 def _unit(x, y, z):
     r = max(math.sqrt(x * x + y * y + z * z), NORM_FLOOR)
@@ -716,24 +763,22 @@ def _zero3(H):
 
 
 @_kernel
-def _sphere(prm, x, y, z, hess, H):
+def _sphere(prm, x, y, z, H):
     nrm = math.sqrt(x * x + y * y + z * z)
     d = nrm - prm[0]
     n0, n1, n2 = _unit(x, y, z)
-    if hess:
-        _circle_hessian(x, y, n0, n1, n2, d + prm[0], 0.0, H)
+    _circle_hessian(x, y, n0, n1, n2, d + prm[0], 0.0, H)
     return d, n0, n1, n2
 
 
 @_kernel
-def _plane(prm, x, y, z, hess, H):
-    if hess:
-        _zero3(H)
+def _plane(prm, x, y, z, H):
+    _zero3(H)
     return z, 0.0, 0.0, 1.0
 
 
 @_kernel
-def _cylinder(prm, x, y, z, hess, H):
+def _cylinder(prm, x, y, z, H):
     """Axis z, centred: radius prm[0], half height prm[1]; the rim is a circle."""
     r, hh = prm[0], prm[1]
     rho = math.sqrt(x * x + y * y)
@@ -749,8 +794,6 @@ def _cylinder(prm, x, y, z, hess, H):
         n0, n1, n2 = u0, u1, 0.0
     else:
         n0, n1, n2 = 0.0, 0.0, axial
-    if not hess:
-        return d, n0, n1, n2
     rho = max(math.hypot(x, y), DIST_FLOOR)
     dr = rho - r
     if dr > 0 and dz > 0:                                # rim: distance to a circle
@@ -765,20 +808,19 @@ def _cylinder(prm, x, y, z, hess, H):
 
 
 @_kernel
-def _ring(prm, x, y, z, hess, H):
+def _ring(prm, x, y, z, H):
     """Torus around z in the x-y plane: major radius prm[0], minor prm[1]."""
     R0, r = prm[0], prm[1]
     u0, u1, _ = _unit(x, y, 0.0)
     v0, v1, v2 = x - R0 * u0, y - R0 * u1, z
     d = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2) - r
     n0, n1, n2 = _unit(v0, v1, v2)
-    if hess:
-        _circle_hessian(x, y, n0, n1, n2, d + r, R0, H)
+    _circle_hessian(x, y, n0, n1, n2, d + r, R0, H)
     return d, n0, n1, n2
 
 
 @_kernel
-def _prism(prm, x, y, z, hess, H):
+def _prism(prm, x, y, z, H):
     """
     Return the distance to an oblique prism (exact).
 
@@ -827,8 +869,6 @@ def _prism(prm, x, y, z, hess, H):
         n0, n1, n2 = prm[o], prm[o + 1], prm[o + 2]
         d = inside_d
         k_best = 12
-    if not hess:
-        return d, n0, n1, n2
     _zero3(H)
     if k_best < 12:
         eab = PRISM_EAB + 3 * k_best
@@ -845,8 +885,8 @@ def _prism(prm, x, y, z, hess, H):
 
 
 @_kernel
-def _sdf_world(kind, prm, pose, px, py, pz, hess, H):
-    """Return (d, nx, ny, nz) at a world point; with ``hess`` its world Hessian into H."""
+def _sdf_world(kind, prm, pose, px, py, pz, H):
+    """Return (d, nx, ny, nz) at a world point and write its world Hessian into H."""
     x = ((px - pose[0, 3]) * pose[0, 0] + (py - pose[1, 3]) * pose[1, 0]) \
         + (pz - pose[2, 3]) * pose[2, 0]
     y = ((px - pose[0, 3]) * pose[0, 1] + (py - pose[1, 3]) * pose[1, 1]) \
@@ -854,33 +894,32 @@ def _sdf_world(kind, prm, pose, px, py, pz, hess, H):
     z = ((px - pose[0, 3]) * pose[0, 2] + (py - pose[1, 3]) * pose[1, 2]) \
         + (pz - pose[2, 3]) * pose[2, 2]
     if kind == CYLINDER:
-        d, a, b, c = _cylinder(prm, x, y, z, hess, H)
+        d, a, b, c = _cylinder(prm, x, y, z, H)
     elif kind == RING:
-        d, a, b, c = _ring(prm, x, y, z, hess, H)
+        d, a, b, c = _ring(prm, x, y, z, H)
     elif kind == PRISM:
-        d, a, b, c = _prism(prm, x, y, z, hess, H)
+        d, a, b, c = _prism(prm, x, y, z, H)
     elif kind == SPHERE:
-        d, a, b, c = _sphere(prm, x, y, z, hess, H)
+        d, a, b, c = _sphere(prm, x, y, z, H)
     else:
-        d, a, b, c = _plane(prm, x, y, z, hess, H)
+        d, a, b, c = _plane(prm, x, y, z, H)
     n0 = (a * pose[0, 0] + b * pose[0, 1]) + c * pose[0, 2]
     n1 = (a * pose[1, 0] + b * pose[1, 1]) + c * pose[1, 2]
     n2 = (a * pose[2, 0] + b * pose[2, 1]) + c * pose[2, 2]
-    if hess:
-        # H <- R H R^T, through R H first (9 temporaries).
-        h00 = H[0, 0] * pose[0, 0] + H[1, 0] * pose[0, 1] + H[2, 0] * pose[0, 2]
-        h01 = H[0, 1] * pose[0, 0] + H[1, 1] * pose[0, 1] + H[2, 1] * pose[0, 2]
-        h02 = H[0, 2] * pose[0, 0] + H[1, 2] * pose[0, 1] + H[2, 2] * pose[0, 2]
-        h10 = H[0, 0] * pose[1, 0] + H[1, 0] * pose[1, 1] + H[2, 0] * pose[1, 2]
-        h11 = H[0, 1] * pose[1, 0] + H[1, 1] * pose[1, 1] + H[2, 1] * pose[1, 2]
-        h12 = H[0, 2] * pose[1, 0] + H[1, 2] * pose[1, 1] + H[2, 2] * pose[1, 2]
-        h20 = H[0, 0] * pose[2, 0] + H[1, 0] * pose[2, 1] + H[2, 0] * pose[2, 2]
-        h21 = H[0, 1] * pose[2, 0] + H[1, 1] * pose[2, 1] + H[2, 1] * pose[2, 2]
-        h22 = H[0, 2] * pose[2, 0] + H[1, 2] * pose[2, 1] + H[2, 2] * pose[2, 2]
-        for j in range(3):
-            H[0, j] = h00 * pose[j, 0] + h01 * pose[j, 1] + h02 * pose[j, 2]
-            H[1, j] = h10 * pose[j, 0] + h11 * pose[j, 1] + h12 * pose[j, 2]
-            H[2, j] = h20 * pose[j, 0] + h21 * pose[j, 1] + h22 * pose[j, 2]
+    # H <- R H R^T, through R H first (9 temporaries).
+    h00 = H[0, 0] * pose[0, 0] + H[1, 0] * pose[0, 1] + H[2, 0] * pose[0, 2]
+    h01 = H[0, 1] * pose[0, 0] + H[1, 1] * pose[0, 1] + H[2, 1] * pose[0, 2]
+    h02 = H[0, 2] * pose[0, 0] + H[1, 2] * pose[0, 1] + H[2, 2] * pose[0, 2]
+    h10 = H[0, 0] * pose[1, 0] + H[1, 0] * pose[1, 1] + H[2, 0] * pose[1, 2]
+    h11 = H[0, 1] * pose[1, 0] + H[1, 1] * pose[1, 1] + H[2, 1] * pose[1, 2]
+    h12 = H[0, 2] * pose[1, 0] + H[1, 2] * pose[1, 1] + H[2, 2] * pose[1, 2]
+    h20 = H[0, 0] * pose[2, 0] + H[1, 0] * pose[2, 1] + H[2, 0] * pose[2, 2]
+    h21 = H[0, 1] * pose[2, 0] + H[1, 1] * pose[2, 1] + H[2, 1] * pose[2, 2]
+    h22 = H[0, 2] * pose[2, 0] + H[1, 2] * pose[2, 1] + H[2, 2] * pose[2, 2]
+    for j in range(3):
+        H[0, j] = h00 * pose[j, 0] + h01 * pose[j, 1] + h02 * pose[j, 2]
+        H[1, j] = h10 * pose[j, 0] + h11 * pose[j, 1] + h12 * pose[j, 2]
+        H[2, j] = h20 * pose[j, 0] + h21 * pose[j, 1] + h22 * pose[j, 2]
     return d, n0, n1, n2
 
 
@@ -898,7 +937,11 @@ def sdf_points(kind, prm, pose, pts, hess):
     Hd = np.empty((3, 3))
     for i in range(P):
         d[i], n[i, 0], n[i, 1], n[i, 2] = _sdf_world(kind, prm, pose, pts[i, 0], pts[i, 1],
-                                                     pts[i, 2], hess, H[i] if hess else Hd)
+                                                     pts[i, 2], Hd)
+        if hess:
+            for r in range(3):
+                for c in range(3):
+                    H[i, r, c] = Hd[r, c]
     return d, n, H
 
 
@@ -909,8 +952,7 @@ def least_gap(kinds, prms, poses, pts, radii):
     best = np.inf
     for o in range(kinds.shape[0]):
         for i in range(pts.shape[0]):
-            d = _sdf_world(kinds[o], prms[o], poses[o], pts[i, 0], pts[i, 1], pts[i, 2], False,
-                           H)[0]
+            d = _sdf_world(kinds[o], prms[o], poses[o], pts[i, 0], pts[i, 1], pts[i, 2], H)[0]
             best = min(best, d - radii[i])
     return best
 
@@ -1005,9 +1047,9 @@ def _sample_gaps(tab, q, g_nodes, kind, prm, pose, near, sub, node_gap, node_slo
             hk = Xs[k] - node_X[i]
             _magnus(q, seg_len[seg], comps, seg * D, int_a[i], hk, False, P, Xw, E, Ms, U, TS)
             _pose_mul(g_nodes[i], E, G)
-            _legendre(2.0 * (int_a[i] + hk) / seg_len[seg] - 1.0, P, 0)
-            _strain_at(P, 0, q, seg * D, comps, xi)
-            d, n0, n1, n2 = _sdf_world(kind, prm, pose, G[0, 3], G[1, 3], G[2, 3], False, H)
+            _legendre(2.0 * (int_a[i] + hk) / seg_len[seg] - 1.0, P[0])
+            _strain_at(P[0], q, seg * D, comps, xi)
+            d, n0, n1, n2 = _sdf_world(kind, prm, pose, G[0, 3], G[1, 3], G[2, 3], H)
             gap[k] = d - radii[_locate(offsets, Xs[k])[0]]
             slope[k] = _slope(G, xi, n0, n1, n2)
     return Xs, gap, slope
@@ -1026,9 +1068,9 @@ def _gap_derivatives(tab, q, g_nodes, iv, X, kind, prm, pose, w, H, G):
     h = X - tab.node_X[iv]
     _magnus(q, L, comps, seg * D, a, h, False, P, Xw, E, Ms, U, TS)
     _pose_mul(g_nodes[iv], E, G)
-    _legendre(2.0 * (a + h) / L - 1.0, P, 0)
-    _strain_at(P, 0, q, seg * D, comps, xi)
-    d, n0, n1, n2 = _sdf_world(kind, prm, pose, G[0, 3], G[1, 3], G[2, 3], True, H)
+    _legendre(2.0 * (a + h) / L - 1.0, P[0])
+    _strain_at(P[0], q, seg * D, comps, xi)
+    d, n0, n1, n2 = _sdf_world(kind, prm, pose, G[0, 3], G[1, 3], G[2, 3], H)
     k0 = xi[1] * xi[5] - xi[2] * xi[4]                  # k x nu
     k1 = xi[2] * xi[3] - xi[0] * xi[5]
     k2 = xi[0] * xi[4] - xi[1] * xi[3]
@@ -1101,12 +1143,12 @@ def _find(tab, q, g_nodes, kinds, prms, poses, law, node_gap, node_normal, w):
         kind, prm, pose = kinds[o], prms[o], poses[o]
         for i in range(N):
             d, n0, n1, n2 = _sdf_world(kind, prm, pose, g_nodes[i, 0, 3], g_nodes[i, 1, 3],
-                                       g_nodes[i, 2, 3], False, H)
+                                       g_nodes[i, 2, 3], H)
             node_normal[o, i, 0], node_normal[o, i, 1], node_normal[o, i, 2] = n0, n1, n2
             node_gap[o, i] = d - radii[_locate(offsets, node_X[i])[0]]
             seg = node_seg[i]
-            _legendre(2.0 * (node_X[i] - offsets[seg]) / seg_len[seg] - 1.0, P, 0)
-            _strain_at(P, 0, q, seg * D, comps, xi)
+            _legendre(2.0 * (node_X[i] - offsets[seg]) / seg_len[seg] - 1.0, P[0])
+            _strain_at(P[0], q, seg * D, comps, xi)
             slope_n[i] = _slope(g_nodes[i], xi, n0, n1, n2)
         Xs, gap, slope = _sample_gaps(tab, q, g_nodes, kind, prm, pose, near, sub, node_gap[o],
                                       slope_n, w)
@@ -1147,11 +1189,11 @@ def _contact_point(tab, q, g_nodes, J_nodes, X, sign, kind, prm, pose, law, w, g
     n = q.shape[0]
     P, Xw = w.P, w.X
     xi = Xw[3]
-    _point_frame(q, tab, g_nodes, J_nodes, X, True, w, g, J)
+    _point_frame(q, tab, g_nodes, J_nodes, X, w, g, J)
     seg, xloc = _locate(tab.offsets, X)
-    _legendre(2.0 * xloc / seg_len[seg] - 1.0, P, 0)
-    _strain_at(P, 0, q, seg * nm * ncomp, comps, xi)
-    d, n0, n1, n2 = _sdf_world(kind, prm, pose, g[0, 3], g[1, 3], g[2, 3], True, H)
+    _legendre(2.0 * xloc / seg_len[seg] - 1.0, P[0])
+    _strain_at(P[0], q, seg * nm * ncomp, comps, xi)
+    d, n0, n1, n2 = _sdf_world(kind, prm, pose, g[0, 3], g[1, 3], g[2, 3], H)
     rad = tab.radii[seg]
     gap = d - rad
     if gap > law.cutoff:
@@ -1506,8 +1548,8 @@ def geometric_stiffness(tab, q, g_nodes, J_nodes, grav_f, pt_X, pt_g, pt_J, pt_f
             for k in range(rule_x.shape[0]):
                 Xq = start + x * (rule_x[k] + 1) / 2
                 wq = x * rule_w[k] / 2
-                _point_frame(q, tab, g_nodes, J_nodes, Xq, True, w, gq, Jq)
-                _legendre(2.0 * (Xq - start) / seg_len[seg] - 1.0, P, 0)
+                _point_frame(q, tab, g_nodes, J_nodes, Xq, w, gq, Jq)
+                _legendre(2.0 * (Xq - start) / seg_len[seg] - 1.0, P[0])
                 _wrench_rate(gq, Jq, pt_f[i], fm, dfm, dl)
                 _add_phi_t(comps, seg * D, P, wq, dl, Kg)
                 if pt_quad[i]:
@@ -1533,7 +1575,7 @@ def geometric_stiffness(tab, q, g_nodes, J_nodes, grav_f, pt_X, pt_g, pt_J, pt_f
             for col in range(n):
                 dM[r, col] += dMb[k + 1, r, col]
         node, seg = gauss_node[k], gauss_seg[k]
-        _legendre(2.0 * (gauss_X[k] - offsets[seg]) / seg_len[seg] - 1.0, P, 0)
+        _legendre(2.0 * (gauss_X[k] - offsets[seg]) / seg_len[seg] - 1.0, P[0])
         _wrench_rate(g_nodes[node], J_nodes[node], F, M, dM, dl)
         _add_phi_t(comps, seg * D, P, gauss_w[k], dl, Kg)
         _wrench(g_nodes[node], Fq, Mq, lam)
@@ -1605,7 +1647,7 @@ def tendon_terms(tab, xi_gauss, td_d, td_on, tension):
                         s += B[i, m] * -dh[m][j]
                     dlam[i, j] -= T * s
                     dlam[i, 3 + j] -= T * B[i, j]
-        _legendre(2.0 * (gauss_X[k] - offsets[seg]) / seg_len[seg] - 1.0, P, 0)
+        _legendre(2.0 * (gauss_X[k] - offsets[seg]) / seg_len[seg] - 1.0, P[0])
         _add_phi_t_vec(comps, seg * D, P, gauss_w[k], lam, Q)
         # dQ += w Phi^T dlam Phi: dlam Phi first (6, n), then Phi^T.
         for r in range(6):
