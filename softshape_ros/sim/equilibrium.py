@@ -65,7 +65,7 @@ def solve_equilibrium(cfg: RigConfig, pressures_pa=None, tensions_n=None, loads=
         'q': q.tolist(), 'tip_position_m': kin.g[-1][:3, 3].tolist(),
         'tip_rotation': kin.g[-1][:3, :3].tolist(), 's_m': s.tolist(),
         'backbone_m': g[:, :3, 3].tolist(),
-        'residual': float(np.abs(asm.residual).max()), 'iterations': int(it),
+        'residual': asm.residual_norm, 'iterations': int(it),
         'contacts': [c.to_dict() for c in result.contacts] if result is not None else [],
         'max_penetration_m': result.max_penetration_m if result is not None else 0.0,
         'scene': None if scene is None else scene.to_json(),

@@ -117,6 +117,30 @@ def abs_max(a):
 
 
 @_kernel
+def weighted_norm(r, kdiag):
+    """Return sqrt(sum r_i^2 / k_i): the residual norm in the stiffness metric."""
+    s = 0.0
+    for i in range(r.shape[0]):
+        s += r[i] * r[i] / kdiag[i]
+    return math.sqrt(s)
+
+
+@_kernel
+def largest_motion(J, dq):
+    """Return the largest backbone displacement |J_v dq| over the nodes (to first order)."""
+    best = 0.0
+    for k in range(J.shape[0]):
+        s = 0.0
+        for r in range(3, 6):
+            v = 0.0
+            for c in range(dq.shape[0]):
+                v += J[k, r, c] * dq[c]
+            s += v * v
+        best = max(best, math.sqrt(s))
+    return best
+
+
+@_kernel
 def _dot(a, b):
     s = 0.0
     for i in range(a.shape[0]):
@@ -198,7 +222,7 @@ def _cho_solve_into(L, b, x):
 
 
 @_kernel
-def _lu_solve(A, b):
+def lu_solve(A, b):
     """Return (x, ok) with ``A x = b`` (LU, partial pivoting); ok False if A is singular."""
     n = A.shape[0]
     M = A.copy()
@@ -288,7 +312,7 @@ def project_step(dq, L, A, lo, max_active):
                 rhs[a] = lo[act[a]] - _dot(A[act[a]], dq0)
                 for b in range(n_act):
                     G[a, b] = _dot(A[act[a]], Y[b])
-            multipliers, ok = _lu_solve(G, rhs)
+            multipliers, ok = lu_solve(G, rhs)
             if not ok:
                 n_act -= 1
                 continue

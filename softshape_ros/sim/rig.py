@@ -16,6 +16,7 @@ import numpy as np
 from softshape_ros.config import RigConfig
 from softshape_ros.hardware.pressure import check_command
 from softshape_ros.scene import Scene, SceneError
+from softshape_ros.sim import kernels
 from softshape_ros.sim.camera import PinholeCamera
 from softshape_ros.sim.contact import (DEFAULT_SMOOTHING_M, DEFAULT_STIFFNESS_N_M,
                                        PenaltyContact)
@@ -98,6 +99,7 @@ class SimRig:
         self._free = None           # (q, assembly, pressures) of the last free equilibrium
         sample_n = int(np.ceil(self.rod.length / SPHERE_SPACING_M)) + 1
         self.sample_s = np.linspace(0.0, self.rod.length, sample_n)
+        self._sample_radii = self.rod.radii[self.rod.locate(self.sample_s)[0]]
         self._node_radii = self.rod.radii[self.rod.locate(self.rod.node_X)[0]]
 
     def set_scene(self, scene: Scene | None) -> None:
@@ -115,8 +117,7 @@ class SimRig:
         if obstacles:
             rest = self.rod.forward(np.zeros(self.rod.n), jac=False)
             pts = np.vstack([rest.g[:, :3, 3], self.rod.positions(rest, self.sample_s)])
-            rad = np.concatenate([self._node_radii,
-                                  self.rod.radii[self.rod.locate(self.sample_s)[0]]])
+            rad = np.concatenate([self._node_radii, self._sample_radii])
             gap = obstacle_set.least_gap(pts, rad)
             if gap < 0.0:
                 raise SceneError(f'scene {scene.id}: the {scene.object} overlaps the robot at '
@@ -143,10 +144,9 @@ class SimRig:
             q0, last, p_last = self._free
             st = self.statics
             dQ = st.B_ch @ (p - p_last)[st.chamber_idx]
-            try:
-                q0 = q0 + np.linalg.solve(last.tangent, dQ)
-            except np.linalg.LinAlgError:
-                pass
+            step, ok = kernels.lu_solve(last.tangent, dQ)
+            if ok:
+                q0 = q0 + step
         g0 = self._node_gap(q0) if self.contact is not None and q0 is not None else np.inf
         if g0 < -PREDICTED_DEPTH_M:
             # The predicted free shape is deep in the object: the free equilibrium would
@@ -242,11 +242,11 @@ class SimRig:
         rod = self.rod
         kin = asm.kin
         g, _ = rod.at(kin, self.sample_s, jac=False)
-        seg, _ = rod.locate(self.sample_s)
         contact = asm.contact
         return SimState(q=q, pressures_pa=np.asarray(p, dtype=float), s_m=self.sample_s.copy(),
-                        backbone_m=g[:, :3, 3], radii_m=rod.radii[seg], tip_pose=kin.g[-1].copy(),
-                        residual=float(np.abs(asm.residual).max()), iterations=int(it),
+                        backbone_m=g[:, :3, 3], radii_m=self._sample_radii.copy(),
+                        tip_pose=kin.g[-1].copy(), residual=asm.residual_norm,
+                        iterations=int(it),
                         contacts=contact.contacts if contact is not None else [],
                         max_penetration_m=(contact.max_penetration_m
                                            if contact is not None else 0.0))

@@ -92,10 +92,14 @@ class PointLoads:
     quad: np.ndarray     # (P,) bool: residual in quadrature form (where moments act)
 
     @staticmethod
+    def none(n: int) -> 'PointLoads':
+        return PointLoads(np.zeros(0), np.zeros((0, 4, 4)), np.zeros((0, 6, n)),
+                          np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, dtype=bool))
+
+    @staticmethod
     def join(parts: list['PointLoads'], n: int) -> 'PointLoads':
         if not parts:
-            return PointLoads(np.zeros(0), np.zeros((0, 4, 4)), np.zeros((0, 6, n)),
-                              np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, dtype=bool))
+            return PointLoads.none(n)
         if len(parts) == 1:
             return parts[0]
         return PointLoads(*(np.concatenate([getattr(p, k) for p in parts])
@@ -107,6 +111,7 @@ class Assembly:
     """Residual, tangent and potential of one shape; the tangent's costly part on demand."""
 
     residual: np.ndarray
+    residual_norm: float             # max |residual| (NaN if any is NaN)
     scale: float                     # the largest generalised force: tolerances are relative
     kin: Kinematics
     energy: float | None             # total potential (None: a load is not conservative)
@@ -169,6 +174,7 @@ class Statics:
             * rod.gravity[None, :]
         self._no_moment = np.zeros_like(self.grav_f)
         self._no_force = np.zeros((0, 3))
+        self._no_points = PointLoads.none(rod.n)
 
     # -- loads -------------------------------------------------------------------------
     def tendon_terms(self, kin: Kinematics, tension: np.ndarray):
@@ -241,7 +247,7 @@ class Statics:
             points.append(PointLoads(result.s_m, result.poses, result.jacobians,
                                      result.force_n, np.zeros_like(result.force_n),
                                      np.zeros(len(result.s_m), dtype=bool)))
-        pts = PointLoads.join(points, rod.n)
+        pts = PointLoads.join(points, rod.n) if points else self._no_points
 
         def geometric():
             return kernels.geometric_stiffness(tab, kin.q, kin.g, kin.J, grav, pts.X, pts.g,
@@ -257,7 +263,7 @@ class Statics:
             pending = lambda: geometric()[1]  # noqa: E731  (tangent only, on demand)
         energies.append(result.energy if result is not None else 0.0)
         energy = float(sum(energies)) if conservative else None
-        return Assembly(R, scale, kin, energy, float(sum(abs(e) for e in energies)), result,
+        return Assembly(R, amax(R), scale, kin, energy, float(sum(map(abs, energies))), result,
                         Kt, pending)
 
     # -- solver ------------------------------------------------------------------------
@@ -291,7 +297,7 @@ class Statics:
                     depth -= 1
                 continue
             if depth >= max_depth:
-                r = kernels.abs_max(res.assembly.residual)
+                r = res.assembly.residual_norm
                 raise SolverError(
                     f'statics did not converge: load factor {load_factor:.4f} failed after '
                     f'{total_iter} Newton iterations (residual {r:.3e}, '
@@ -301,7 +307,7 @@ class Statics:
         return q, last, total_iter
 
     def _converged(self, asm: Assembly, tol: float) -> bool:
-        return kernels.abs_max(asm.residual) <= tol * asm.scale + RESIDUAL_FLOOR
+        return asm.residual_norm <= tol * asm.scale + RESIDUAL_FLOOR
 
     def _newton(self, q, u, loads, load_factor, contact, tol, max_iter) -> NewtonResult:
         """
@@ -322,7 +328,7 @@ class Statics:
         radius = TRUST_START_M if contact is not None else np.inf
         mu = 0.0
         for it in range(1, max_iter + 1):
-            rn = kernels.abs_max(asm.residual)
+            rn = asm.residual_norm
             if not np.isfinite(rn):
                 return NewtonResult(False, q, asm, it)
             if self._converged(asm, tol):
@@ -366,7 +372,7 @@ class Statics:
             dq *= max_dq / big
         move = np.inf
         if np.isfinite(radius):
-            move = float(np.sqrt(((asm.kin.J[:, 3:, :] @ dq) ** 2).sum(axis=1)).max())
+            move = kernels.largest_motion(asm.kin.J, dq)
             if move > radius:
                 dq *= radius / move
                 move = radius
@@ -383,9 +389,9 @@ class Statics:
         kd = self.rod.kdiag
 
         def wnorm(a):
-            return float(np.sqrt(np.sum(a.residual ** 2 / kd)))
+            return kernels.weighted_norm(a.residual, kd)
 
-        rn = kernels.abs_max(asm.residual)
+        rn = asm.residual_norm
         slope = float(asm.residual @ dq)
         w0 = wnorm(asm)
         # Energy as merit away from the solution only: the point-load residual is its
@@ -394,7 +400,7 @@ class Statics:
         alpha = 1.0
         for _ in range(LINE_SEARCH_HALVINGS):
             trial = trial_at(q + alpha * dq)
-            if np.isfinite(kernels.abs_max(trial.residual)):
+            if np.isfinite(trial.residual_norm):
                 wt = wnorm(trial)
                 ok = mu == 0.0 and alpha == 1.0 and wt < NEWTON_SHRINK * w0
                 if not ok and energy_merit and trial.energy is not None:
