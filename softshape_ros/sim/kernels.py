@@ -57,6 +57,10 @@ Z1 = 0.5 - math.sqrt(3.0) / 6.0      # Zanna points of the 4th-order Magnus step
 Z2 = 0.5 + math.sqrt(3.0) / 6.0
 C4 = math.sqrt(3.0) / 12.0
 PIVOT_FLOOR = 0.0       # a Cholesky pivot at or below this: not positive definite
+SHIFT_START = 1e-4      # the first tangent shift tried (x diag K) where it is not PD ...
+SHIFT_RELAX = 0.1       # ... or a tenth of the last one used ...
+SHIFT_GROWTH = 10.0     # ... growing tenfold until the Cholesky succeeds
+SOFTPLUS_LINEAR = 30.0  # softplus(z) = z beyond this (to 1e-13)
 QP_ROUNDOFF = -1e-13    # a step QP violation above this is round-off (a row duplicating another)
 CURVE_FLOOR = 1e-12     # |d2 gap / dX2| below this: no Newton step on the contact abscissa
 SLIDE_FLOOR = 1e-9      # ... below this: the contact point's sliding term is left out
@@ -256,19 +260,76 @@ def shifted_cholesky(H, kdiag, mu_last, tries):
     Return (L, shift, ok): the Cholesky factor of ``H + shift diag(kdiag)``.
 
     ``shift`` is 0 where H is positive definite, else the smallest of ``max(mu_last / 10,
-    1e-4) * 10^i`` that makes it so (``tries`` of them).
+    1e-4) * 10^i`` that makes it so (``tries`` of them; SHIFT_* below).
     """
     n = H.shape[0]
     L = np.empty((n, n))
     Hs = H.copy()
-    shift, mu_next = 0.0, max(mu_last * 0.1, 1e-4)
+    shift, mu_next = 0.0, max(mu_last * SHIFT_RELAX, SHIFT_START)
     for _ in range(tries):
         for i in range(n):
             Hs[i, i] = H[i, i] + shift * kdiag[i]
         if cholesky(Hs, L):
             return L, shift, True
-        shift, mu_next = mu_next, mu_next * 10.0
+        shift, mu_next = mu_next, mu_next * SHIFT_GROWTH
     return L, shift, False
+
+
+@_kernel
+def _most_violated(A, lo, dq, act, n_act):
+    """Return (violation, row) of the most violated constraint not in act[:n_act]."""
+    best, i_best = np.inf, -1
+    for r in range(lo.shape[0]):
+        skip = False
+        for a in range(n_act):
+            skip = skip or act[a] == r
+        if not skip:
+            v = _dot(A[r], dq) - lo[r]
+            if v < best:
+                best, i_best = v, r
+    return best, i_best
+
+
+@_kernel
+def _active_set_step(dq0, L, A, lo, act, n_act, Y, dq):
+    """
+    Solve the step with the constraints act[:n_act] held as equalities; return the set size.
+
+    ``dq = dq0 + H^-1 A_W^T m`` with ``(A_W H^-1 A_W^T) m = lo_W - A_W dq0``; a constraint
+    that would pull (m < 0) leaves and the step is solved again, one that makes the system
+    singular (the last added) too. Returns 0 (dq untouched) if the set runs out.
+    """
+    n = dq0.shape[0]
+    while n_act > 0:
+        for a in range(n_act):
+            _cho_solve_into(L, A[act[a]], Y[a])             # rows of H^-1 A_W^T
+        G = np.empty((n_act, n_act))
+        rhs = np.empty(n_act)
+        for a in range(n_act):
+            rhs[a] = lo[act[a]] - _dot(A[act[a]], dq0)
+            for b in range(n_act):
+                G[a, b] = _dot(A[act[a]], Y[b])
+        multipliers, ok = lu_solve(G, rhs)
+        if not ok:
+            n_act -= 1
+            continue
+        pulling = False
+        for a in range(n_act):
+            pulling = pulling or multipliers[a] < 0.0
+        if not pulling:
+            for i in range(n):
+                s = dq0[i]
+                for a in range(n_act):
+                    s += Y[a, i] * multipliers[a]
+                dq[i] = s
+            return n_act
+        keep = 0
+        for a in range(n_act):
+            if multipliers[a] >= 0.0:
+                act[keep] = act[a]
+                keep += 1
+        n_act = keep
+    return 0
 
 
 @_kernel
@@ -281,69 +342,29 @@ def project_step(dq, L, A, lo, max_active):
     would pull (negative multiplier) leaves it. Should the active set run out, the step is
     scaled back until every constraint holds.
     """
-    m, n = lo.shape[0], dq.shape[0]
+    n = dq.shape[0]
     dq0 = dq.copy()
     dq = dq.copy()
     act = np.empty(max_active, dtype=np.int64)
-    Y = np.empty((max_active, n))                         # rows: H^-1 a_i
+    Y = np.empty((max_active, n))
     n_act = 0
     for _ in range(max_active):
-        best, i_best = np.inf, -1
-        for r in range(m):
-            skip = False
-            for a in range(n_act):
-                skip = skip or act[a] == r
-            if skip:
-                continue
-            v = _dot(A[r], dq) - lo[r]
-            if v < best:
-                best, i_best = v, r
-        if i_best < 0 or best >= QP_ROUNDOFF:
+        worst, i = _most_violated(A, lo, dq, act, n_act)
+        if i < 0 or worst >= QP_ROUNDOFF:
             return dq
-        act[n_act] = i_best
-        n_act += 1
-        solved = False
-        while n_act > 0:
-            for a in range(n_act):
-                _cho_solve_into(L, A[act[a]], Y[a])
-            G = np.empty((n_act, n_act))
-            rhs = np.empty(n_act)
-            for a in range(n_act):
-                rhs[a] = lo[act[a]] - _dot(A[act[a]], dq0)
-                for b in range(n_act):
-                    G[a, b] = _dot(A[act[a]], Y[b])
-            multipliers, ok = lu_solve(G, rhs)
-            if not ok:
-                n_act -= 1
-                continue
-            pulling = False
-            for a in range(n_act):
-                pulling = pulling or multipliers[a] < 0.0
-            if not pulling:
-                for i in range(n):
-                    s = dq0[i]
-                    for a in range(n_act):
-                        s += Y[a, i] * multipliers[a]
-                    dq[i] = s
-                solved = True
-                break
-            keep = 0
-            for a in range(n_act):
-                if multipliers[a] >= 0.0:
-                    act[keep] = act[a]
-                    keep += 1
-            n_act = keep
-        if not solved:
-            for i in range(n):
-                dq[i] = dq0[i]
+        act[n_act] = i
+        n_act = _active_set_step(dq0, L, A, lo, act, n_act + 1, Y, dq)
+        if n_act == 0:
+            for k in range(n):
+                dq[k] = dq0[k]
     scale = 1.0
-    for r in range(m):
+    for r in range(lo.shape[0]):
         rate = _dot(A[r], dq)
         if rate < lo[r]:
             scale = min(scale, lo[r] / rate)
     if scale < 1.0:
-        for i in range(n):
-            dq[i] *= scale
+        for k in range(n):
+            dq[k] *= scale
     return dq
 
 
@@ -1195,7 +1216,42 @@ def _find(tab, q, g_nodes, kinds, prms, poses, law, node_gap, node_normal, w):
 
 @_kernel
 def _softplus(x):
-    return x if x > 30 else math.log1p(math.exp(min(x, 30.0)))
+    return x if x > SOFTPLUS_LINEAR else math.log1p(math.exp(min(x, SOFTPLUS_LINEAR)))
+
+
+@_kernel
+def _add_sliding(tab, seg, P, xi, g, J, D, Htv, nv, coef, tmp, gxq, Kc):
+    """
+    Add the contact point's sliding to Kc: ``coef gXq^T gXq``, coef = sign lambda / gXX.
+
+    The point is a critical point of the gap over X, so it moves with q; ``gXq = (H p')^T D
+    + n^T d p'/dq`` with ``d p'/dq = R (-nu^ J_w + Phi_nu)`` (p' = R nu the tangent).
+    """
+    comps = tab.comps
+    nm, ncomp = tab.n_modes, comps.shape[0]
+    n = J.shape[1]
+    for col in range(n):
+        w0, w1, w2 = J[0, col], J[1, col], J[2, col]
+        tmp[0, col] = -(xi[4] * w2 - xi[5] * w1)
+        tmp[1, col] = -(xi[5] * w0 - xi[3] * w2)
+        tmp[2, col] = -(xi[3] * w1 - xi[4] * w0)
+    for ci in range(ncomp):
+        comp = comps[ci]
+        if comp >= 3:
+            for j in range(nm):
+                tmp[comp - 3, seg * nm * ncomp + ci * nm + j] += P[0, j]
+    nb = (g[0, 0] * nv[0] + g[1, 0] * nv[1] + g[2, 0] * nv[2],      # R^T n
+          g[0, 1] * nv[0] + g[1, 1] * nv[1] + g[2, 1] * nv[2],
+          g[0, 2] * nv[0] + g[1, 2] * nv[1] + g[2, 2] * nv[2])
+    for col in range(n):
+        s = 0.0
+        for r in range(3):
+            s += Htv[r] * D[r, col] + nb[r] * tmp[r, col]
+        gxq[col] = s
+    for a in range(n):
+        u = coef * gxq[a]
+        for b in range(n):
+            Kc[a, b] += u * gxq[b]
 
 
 @_kernel
@@ -1206,7 +1262,7 @@ def _contact_point(tab, q, g_nodes, J_nodes, X, sign, kind, prm, pose, law, w, g
 
     Returns False (nothing added) when the gap is beyond the cutoff. Adds the generalised
     force ``D^T f`` to Q and to Kc the material term ``-D^T df/dp D`` and the sliding of the
-    contact point (a critical point of the gap over X: ``lambda gXq^T gXq / gXX``).
+    contact point (:func:`_add_sliding`).
     """
     comps, seg_len = tab.comps, tab.seg_len
     nm, ncomp = tab.n_modes, comps.shape[0]
@@ -1260,30 +1316,49 @@ def _contact_point(tab, q, g_nodes, J_nodes, X, sign, kind, prm, pose, law, w, g
                 for b in range(n):
                     Kc[a, b] -= u * D[r, b]
     if X < tab.offsets[tab.offsets.shape[0] - 1] - TIP_GUARD_M and sign * gxx > SLIDE_FLOOR:
-        # gXq = (H p')^T D + n^T d p'/dq, d p'/dq = R (-nu^ J_w + Phi_nu).
-        for col in range(n):
-            w0, w1, w2 = J[0, col], J[1, col], J[2, col]
-            tmp[0, col] = -(xi[4] * w2 - xi[5] * w1)
-            tmp[1, col] = -(xi[5] * w0 - xi[3] * w2)
-            tmp[2, col] = -(xi[3] * w1 - xi[4] * w0)
-        for ci in range(ncomp):
-            comp = comps[ci]
-            if comp >= 3:
-                for j in range(nm):
-                    tmp[comp - 3, seg * nm * ncomp + ci * nm + j] += P[0, j]
-        nb = (g[0, 0] * n0 + g[1, 0] * n1 + g[2, 0] * n2, g[0, 1] * n0 + g[1, 1] * n1
-              + g[2, 1] * n2, g[0, 2] * n0 + g[1, 2] * n1 + g[2, 2] * n2)     # R^T n
-        for col in range(n):
-            s = 0.0
-            for r in range(3):
-                s += Htv[r] * D[r, col] + nb[r] * tmp[r, col]
-            gxq[col] = s
-        coef = sign * force / gxx
-        for a in range(n):
-            u = coef * gxq[a]
-            for b in range(n):
-                Kc[a, b] += u * gxq[b]
+        _add_sliding(tab, seg, P, xi, g, J, D, Htv, nv, sign * force / gxx, tmp, gxq, Kc)
     return True
+
+
+@_kernel
+def _step_rows(rows, grad, node_gap, node_normal, g_nodes, J_nodes, depth):
+    """
+    Return (A, lo): the linearised gaps a Newton step must keep, ``A dq >= lo``.
+
+    Each contact (ridges aside) may press to ``depth`` or twice its depth: where it lifts
+    off, its penalty is nearly flat and the Newton model alone would send it millimetres
+    deep. Each node now outside may press at most ``depth`` in.
+    """
+    n = grad.shape[1]
+    n_rows = 0
+    for c in range(rows.shape[0]):
+        n_rows += rows[c, C_SIGN] > 0
+    for o in range(node_gap.shape[0]):
+        for i in range(node_gap.shape[1]):
+            n_rows += node_gap[o, i] > 0
+    A = np.empty((n_rows, n))
+    lo = np.empty(n_rows)
+    r = 0
+    for c in range(rows.shape[0]):
+        if rows[c, C_SIGN] > 0:
+            gap = rows[c, C_GAP]
+            for col in range(n):
+                A[r, col] = grad[c, col]
+            lo[r] = min(2.0 * gap, -depth) - gap
+            r += 1
+    for o in range(node_gap.shape[0]):
+        for i in range(node_gap.shape[1]):
+            if node_gap[o, i] > 0:
+                for col in range(n):
+                    s = 0.0
+                    for a in range(3):
+                        s += node_normal[o, i, a] * (g_nodes[i, a, 0] * J_nodes[i, 3, col]
+                                                     + g_nodes[i, a, 1] * J_nodes[i, 4, col]
+                                                     + g_nodes[i, a, 2] * J_nodes[i, 5, col])
+                    A[r, col] = s
+                lo[r] = -depth - node_gap[o, i]
+                r += 1
+    return A, lo
 
 
 @_kernel
@@ -1295,8 +1370,7 @@ def penalty_contacts(tab, q, g_nodes, J_nodes, kinds, prms, poses, law):
     radius; poses (C, 4, 4); Jacobians (C, 6, n); generalised force Q (n,); tangent part Kc
     (n, n); step rows A (R, n) and lower bounds lo (R,); node gaps (O, N)). Kc holds the
     material and sliding terms; the geometric (dead-load) part comes with the other point
-    loads in :func:`geometric_stiffness`. Step rows: each contact (ridges aside) may press
-    to ``step_depth`` or twice its depth, each node now outside at most ``step_depth`` in.
+    loads in :func:`geometric_stiffness`; the step rows are :func:`_step_rows`.
     """
     N = tab.node_X.shape[0]
     n_obj = kinds.shape[0]
@@ -1324,34 +1398,8 @@ def penalty_contacts(tab, q, g_nodes, J_nodes, kinds, prms, poses, law):
                           tmp, gxq, H):
             rows[kept, C_OBJ] = o
             kept += 1
-    n_rows = 0
-    for c in range(kept):
-        n_rows += rows[c, C_SIGN] > 0
-    for o in range(n_obj):
-        for i in range(N):
-            n_rows += node_gap[o, i] > 0
-    A = np.empty((n_rows, n))
-    lo = np.empty(n_rows)
-    r = 0
-    for c in range(kept):
-        if rows[c, C_SIGN] > 0:
-            gap = rows[c, C_GAP]
-            for col in range(n):
-                A[r, col] = grad[c, col]
-            lo[r] = min(2.0 * gap, -law.step_depth) - gap
-            r += 1
-    for o in range(n_obj):
-        for i in range(N):
-            if node_gap[o, i] > 0:
-                for col in range(n):
-                    s = 0.0
-                    for a in range(3):
-                        s += node_normal[o, i, a] * (g_nodes[i, a, 0] * J_nodes[i, 3, col]
-                                                     + g_nodes[i, a, 1] * J_nodes[i, 4, col]
-                                                     + g_nodes[i, a, 2] * J_nodes[i, 5, col])
-                    A[r, col] = s
-                lo[r] = -law.step_depth - node_gap[o, i]
-                r += 1
+    A, lo = _step_rows(rows[:kept], grad, node_gap, node_normal, g_nodes, J_nodes,
+                       law.step_depth)
     return rows[:kept], g[:kept], J[:kept], Q, Kc, A, lo, node_gap
 
 
@@ -1405,14 +1453,14 @@ def penalty_energy(rows, stiffness, smoothing, stiffening):
     Return the penalty potential of the contacts: sum of sign x (smooth part + stiffening).
 
     Smooth part ``int_gap^inf k pen = k delta^2 (-Li2(-e^z))``, z = -gap / delta,
-    ``-Li2(-e^z) = -spence(1 + e^z)`` (its asymptote beyond z = 30); the stiffening part
-    ``k pen^3 / (3 p0)`` taken unsmoothed (it only serves as a merit).
+    ``-Li2(-e^z) = -spence(1 + e^z)`` (its asymptote beyond z = SOFTPLUS_LINEAR); the
+    stiffening part ``k pen^3 / (3 p0)`` taken unsmoothed (it only serves as a merit).
     """
     e = 0.0
     for c in range(rows.shape[0]):
         gap = rows[c, C_GAP]
         z = -gap / smoothing
-        if z > 30:
+        if z > SOFTPLUS_LINEAR:
             smooth = z ** 2 / 2 + math.pi ** 2 / 6 - math.exp(-z)
         else:
             smooth = -spence(1.0 + math.exp(z))
@@ -1521,6 +1569,37 @@ def _bin_add(Fb, Mb, dMb, b, f, fm, dfm):
 
 
 @_kernel
+def _own_segment_rule(tab, q, g_nodes, J_nodes, seg, x, f, fm, dfm, quad, w, Kg, Qp):
+    """
+    Integrate one point load over its own segment, [segment start, X]: Kg, and Qp if quad.
+
+    The load's internal wrench there is constant in the world (f, moment fm about the
+    origin), so a Gauss rule on that stretch integrates ``Phi^T Lambda`` exactly enough
+    whatever the basis order.
+    """
+    comps, seg_len = tab.comps, tab.seg_len
+    rule_x, rule_w = tab.rule_x, tab.rule_w
+    start = tab.offsets[seg]
+    n = q.shape[0]
+    D = tab.n_modes * comps.shape[0]
+    P = np.empty((1, tab.n_modes))
+    dl = np.empty((6, n))
+    wrench = np.empty(6)
+    gq = np.empty((4, 4))
+    Jq = np.empty((6, n))
+    for k in range(rule_x.shape[0]):
+        Xq = start + x * (rule_x[k] + 1) / 2
+        wq = x * rule_w[k] / 2
+        _point_frame(q, tab, g_nodes, J_nodes, Xq, w, gq, Jq)
+        _legendre(2.0 * (Xq - start) / seg_len[seg] - 1.0, P[0])
+        _wrench_rate(gq, Jq, f, fm, dfm, dl)
+        _add_phi_t(comps, seg * D, P, wq, dl, Kg)
+        if quad:
+            _wrench(gq, f, fm, wrench)
+            _add_phi_t_vec(comps, seg * D, P, wq, wrench, Qp)
+
+
+@_kernel
 def geometric_stiffness(tab, q, g_nodes, J_nodes, grav_f, pt_X, pt_g, pt_J, pt_f, pt_m,
                         pt_quad):
     """
@@ -1538,7 +1617,6 @@ def geometric_stiffness(tab, q, g_nodes, J_nodes, grav_f, pt_X, pt_g, pt_J, pt_f
     comps, offsets, seg_len = tab.comps, tab.offsets, tab.seg_len
     gauss_X, gauss_node, gauss_seg, gauss_w = tab.gauss_X, tab.gauss_node, tab.gauss_seg, \
         tab.gauss_w
-    rule_x, rule_w = tab.rule_x, tab.rule_w
     nm = tab.n_modes
     D = nm * comps.shape[0]
     n = q.shape[0]
@@ -1555,9 +1633,7 @@ def geometric_stiffness(tab, q, g_nodes, J_nodes, grav_f, pt_X, pt_g, pt_J, pt_f
     fm = np.empty(3)
     dfm = np.empty((3, n))
     dl = np.empty((6, n))
-    lam = np.empty(6)
-    gq = np.empty((4, 4))
-    Jq = np.empty((6, n))
+    wrench = np.empty(6)
     zero = np.zeros(3)
     for j in range(grav_f.shape[0]):
         node = gauss_node[j]
@@ -1566,19 +1642,10 @@ def geometric_stiffness(tab, q, g_nodes, J_nodes, grav_f, pt_X, pt_g, pt_J, pt_f
     for i in range(pt_X.shape[0]):
         _moment_and_rate(pt_g[i], pt_J[i], pt_f[i], pt_m[i], fm, dfm)
         seg, x = _locate(offsets, pt_X[i])
-        start = offsets[seg]
-        b = _bisect_right(gauss_X, start - LOCATE_EPS_M)
+        b = _bisect_right(gauss_X, offsets[seg] - LOCATE_EPS_M)
         if x > 0.0:
-            for k in range(rule_x.shape[0]):
-                Xq = start + x * (rule_x[k] + 1) / 2
-                wq = x * rule_w[k] / 2
-                _point_frame(q, tab, g_nodes, J_nodes, Xq, w, gq, Jq)
-                _legendre(2.0 * (Xq - start) / seg_len[seg] - 1.0, P[0])
-                _wrench_rate(gq, Jq, pt_f[i], fm, dfm, dl)
-                _add_phi_t(comps, seg * D, P, wq, dl, Kg)
-                if pt_quad[i]:
-                    _wrench(gq, pt_f[i], fm, lam)
-                    _add_phi_t_vec(comps, seg * D, P, wq, lam, Qp)
+            _own_segment_rule(tab, q, g_nodes, J_nodes, seg, x, pt_f[i], fm, dfm, pt_quad[i],
+                              w, Kg, Qp)
         _bin_add(Fb, Mb, dMb, b, pt_f[i], fm, dfm)
         if pt_quad[i]:
             for r in range(3):
@@ -1602,9 +1669,43 @@ def geometric_stiffness(tab, q, g_nodes, J_nodes, grav_f, pt_X, pt_g, pt_J, pt_f
         _legendre(2.0 * (gauss_X[k] - offsets[seg]) / seg_len[seg] - 1.0, P[0])
         _wrench_rate(g_nodes[node], J_nodes[node], F, M, dM, dl)
         _add_phi_t(comps, seg * D, P, gauss_w[k], dl, Kg)
-        _wrench(g_nodes[node], Fq, Mq, lam)
-        _add_phi_t_vec(comps, seg * D, P, gauss_w[k], lam, Qp)
+        _wrench(g_nodes[node], Fq, Mq, wrench)
+        _add_phi_t_vec(comps, seg * D, P, gauss_w[k], wrench, Qp)
     return Qp, Kg
+
+
+@_kernel
+def _add_tendon(xi, d0, d1, d2, T, wrench, dwrench, B):
+    """
+    Add one tendon's wrench on the section and its strain derivative; return its length rate.
+
+    The tendon at body offset d runs along ``v = nu + k x d``; its wrench is
+    ``-T [d x t; t]``, t = v / |v|, and ``d wrench / d xi = -T [d^; I] (I - t t^T) / |v|
+    [-d^, I]``. B: (6, 3) scratch.
+    """
+    v0 = (xi[1] * d2 - xi[2] * d1) + xi[3]
+    v1 = (xi[2] * d0 - xi[0] * d2) + xi[4]
+    v2 = (xi[0] * d1 - xi[1] * d0) + xi[5]
+    nv = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+    t = (v0 / nv, v1 / nv, v2 / nv)
+    wrench[0] -= T * (d1 * t[2] - d2 * t[1])
+    wrench[1] -= T * (d2 * t[0] - d0 * t[2])
+    wrench[2] -= T * (d0 * t[1] - d1 * t[0])
+    wrench[3] -= T * t[0]
+    wrench[4] -= T * t[1]
+    wrench[5] -= T * t[2]
+    dh = ((0.0, -d2, d1), (d2, 0.0, -d0), (-d1, d0, 0.0))
+    for i in range(3):
+        for j in range(3):
+            B[3 + i, j] = ((1.0 if i == j else 0.0) - t[i] * t[j]) / nv
+    for i in range(3):
+        for j in range(3):
+            B[i, j] = dh[i][0] * B[3, j] + dh[i][1] * B[4, j] + dh[i][2] * B[5, j]
+    for i in range(6):
+        for j in range(3):
+            dwrench[i, j] -= T * -(B[i, 0] * dh[0][j] + B[i, 1] * dh[1][j] + B[i, 2] * dh[2][j])
+            dwrench[i, 3 + j] -= T * B[i, j]
+    return nv
 
 
 @_kernel
@@ -1612,9 +1713,8 @@ def tendon_terms(tab, xi_gauss, td_d, td_on, tension):
     """
     Return (Q, dQ/dq, energy) of thread-like tendons; slack (negative) tensions pull nothing.
 
-    A tendon at body offset d runs along ``v = nu + k x d``; its wrench on the section is
-    ``-T [d x t; t]``, t = v / |v|, its potential T times its length, and
-    ``d wrench / d xi = -T [d^; I] (I - t t^T) / |v| [-d^, I]``.
+    Each tendon's wrench (:func:`_add_tendon`) integrated by the Gauss rule; its potential
+    is T times its length.
     """
     comps, offsets, seg_len = tab.comps, tab.offsets, tab.seg_len
     gauss_X, gauss_seg, gauss_w = tab.gauss_X, tab.gauss_seg, tab.gauss_w
@@ -1625,55 +1725,24 @@ def tendon_terms(tab, xi_gauss, td_d, td_on, tension):
     dQ = np.zeros((n, n))
     energy = 0.0
     P = np.empty((1, nm))
-    lam = np.empty(6)
-    dlam = np.empty((6, 6))
-    B = np.empty((6, 3))              # [d^; I] (I - t t^T) / |v|
+    wrench = np.empty(6)
+    dwrench = np.empty((6, 6))
+    B = np.empty((6, 3))
     tmp = np.empty((6, n))
     for k in range(xi_gauss.shape[0]):
         seg = gauss_seg[k]
         for i in range(6):
-            lam[i] = 0.0
+            wrench[i] = 0.0
             for j in range(6):
-                dlam[i, j] = 0.0
+                dwrench[i, j] = 0.0
         for a in range(td_d.shape[0]):
             T = max(tension[a], 0.0) * td_on[k, a]
-            d0, d1, d2 = td_d[a, 0], td_d[a, 1], td_d[a, 2]
-            k0, k1, k2 = xi_gauss[k, 0], xi_gauss[k, 1], xi_gauss[k, 2]
-            v0 = (k1 * d2 - k2 * d1) + xi_gauss[k, 3]
-            v1 = (k2 * d0 - k0 * d2) + xi_gauss[k, 4]
-            v2 = (k0 * d1 - k1 * d0) + xi_gauss[k, 5]
-            nv = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
-            t = (v0 / nv, v1 / nv, v2 / nv)
-            lam[0] -= T * (d1 * t[2] - d2 * t[1])
-            lam[1] -= T * (d2 * t[0] - d0 * t[2])
-            lam[2] -= T * (d0 * t[1] - d1 * t[0])
-            lam[3] -= T * t[0]
-            lam[4] -= T * t[1]
-            lam[5] -= T * t[2]
+            nv = _add_tendon(xi_gauss[k], td_d[a, 0], td_d[a, 1], td_d[a, 2], T, wrench,
+                             dwrench, B)
             energy += gauss_w[k] * T * nv
-            dh = ((0.0, -d2, d1), (d2, 0.0, -d0), (-d1, d0, 0.0))
-            for i in range(3):
-                for j in range(3):
-                    pij = ((1.0 if i == j else 0.0) - t[i] * t[j]) / nv
-                    B[3 + i, j] = pij
-                    B[i, j] = 0.0
-            for i in range(3):
-                for j in range(3):
-                    s = 0.0
-                    for m in range(3):
-                        s += dh[i][m] * B[3 + m, j]
-                    B[i, j] = s
-            for i in range(6):
-                for j in range(3):
-                    # [.., -d^] block, then [.., I]
-                    s = 0.0
-                    for m in range(3):
-                        s += B[i, m] * -dh[m][j]
-                    dlam[i, j] -= T * s
-                    dlam[i, 3 + j] -= T * B[i, j]
         _legendre(2.0 * (gauss_X[k] - offsets[seg]) / seg_len[seg] - 1.0, P[0])
-        _add_phi_t_vec(comps, seg * D, P, gauss_w[k], lam, Q)
-        # dQ += w Phi^T dlam Phi: dlam Phi first (6, n), then Phi^T.
+        _add_phi_t_vec(comps, seg * D, P, gauss_w[k], wrench, Q)
+        # dQ += w Phi^T dwrench Phi: dwrench Phi first (6, n), then Phi^T.
         for r in range(6):
             for col in range(n):
                 tmp[r, col] = 0.0
@@ -1682,6 +1751,6 @@ def tendon_terms(tab, xi_gauss, td_d, td_on, tension):
             for j in range(nm):
                 col = seg * D + ci * nm + j
                 for r in range(6):
-                    tmp[r, col] = dlam[r, c] * P[0, j]
+                    tmp[r, col] = dwrench[r, c] * P[0, j]
         _add_phi_t(comps, seg * D, P, gauss_w[k], tmp, dQ)
     return Q, dQ, energy
