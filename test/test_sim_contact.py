@@ -249,3 +249,62 @@ def test_step_projection_solves_the_newton_qp_and_keeps_every_constraint():
         assert np.allclose(dq, _qp_by_enumeration(H, r, A, lo), atol=1e-9), trial
         active.append(int(np.sum(np.abs(A @ dq - lo) < 1e-9)))
     assert max(active) >= 3         # the test reaches several active constraints
+
+
+def test_contact_tangent_matches_finite_differences():
+    # The contact's Jacobian (material, sliding of the point, geometric part) against central
+    # differences of the residual, on a shape pressed into the cylinder (a little off its
+    # equilibrium). (The potential's stiffening part is unsmoothed, a merit only: its
+    # gradient is not the force.)
+    rig = SimRig(CFG)
+    rig.set_scene(placed('cylinder'))
+    st = rig.solve(PUSH)
+    q = st.q + np.random.default_rng(2).normal(scale=0.02, size=st.q.shape)
+    statics, law = rig.statics, rig.contact
+
+    def at(x):
+        return statics.assemble(x, st.pressures_pa, [], 1.0, law)
+
+    a = at(q)
+    assert a.contact.any and (a.contact.gap_m < 0).any()
+    h = 1e-7
+    fd = np.zeros_like(a.tangent)
+    for i in range(len(q)):
+        dq = np.zeros(len(q))
+        dq[i] = h
+        fd[:, i] = (at(q + dq).residual - at(q - dq).residual) / (2 * h)
+    assert np.abs(fd - a.tangent).max() < 1e-3 * np.abs(fd).max()
+
+
+def test_compiled_spence_matches_scipy():
+    # The penalty potential's dilogarithm is compiled (Cephes' rational approximation).
+    from scipy.special import spence
+    from softshape_ros.sim.kernels import spence as compiled
+    x = np.concatenate([[0.0, 0.5, 1.0, 1.5, 2.0], 1.0 + np.exp(np.linspace(-30, 30, 601)),
+                        np.linspace(0.0, 3.0, 301)])
+    ours = np.array([compiled(v) for v in x])
+    assert np.allclose(ours, spence(x), rtol=1e-14, atol=1e-300)
+    assert np.isnan(compiled(-1.0))
+
+
+def test_a_contact_law_is_any_class_with_evaluate():
+    # The protocol is explicit: Statics calls evaluate(rod, kin) -> ContactResult, nothing
+    # else. A law wrapping the penalty law gives the same equilibrium through it.
+    from softshape_ros.sim.contact import ContactLaw, ContactResult
+
+    class Counting:
+        def __init__(self, law):
+            self.law, self.calls = law, 0
+
+        def evaluate(self, rod, kin) -> ContactResult:
+            self.calls += 1
+            return self.law.evaluate(rod, kin)
+
+    rig = SimRig(CFG)
+    rig.set_scene(placed('ring'))
+    st = rig.solve(PUSH)
+    law = Counting(rig.contact)
+    assert isinstance(rig.contact, ContactLaw) and isinstance(law, ContactLaw)
+    q, asm, _ = rig.statics.solve(st.pressures_pa, q0=st.q, contact=law)
+    assert law.calls >= 1 and isinstance(asm.contact, ContactResult)
+    assert np.abs(q - st.q).max() < 1e-9

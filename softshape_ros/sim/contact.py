@@ -27,7 +27,7 @@ profile's minima and ridges are those of the rod itself and stay put between ite
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Protocol
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 
@@ -143,6 +143,7 @@ class ContactResult:
         return len(self.rows) > 0
 
 
+@runtime_checkable
 class ContactLaw(Protocol):
     """A contact law: one method from a shape to the contact loads on it."""
 
