@@ -36,6 +36,7 @@ class Obstacle:
         self.g = pose(position, rpy)
         self.R = self.g[:3, :3]
         self.t = self.g[:3, 3]
+        self._row = None
 
     def params(self) -> np.ndarray:
         """Return the kind's numbers as the row the kernels read (length PRISM_PARAMS)."""
@@ -43,7 +44,8 @@ class Obstacle:
 
     @property
     def row(self) -> np.ndarray:
-        if not hasattr(self, '_row'):
+        """Return the parameter row (built on first use: subclasses set their sizes first)."""
+        if self._row is None:
             self._row = self.params()
         return self._row
 
