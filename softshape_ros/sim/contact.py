@@ -172,11 +172,12 @@ class PenaltyContact:
         """Return the same law with the penalty stiffness times ``factor``."""
         return replace(self, stiffness=self.stiffness * factor)
 
-    def _params(self) -> kernels.PenaltyParams:
-        return kernels.PenaltyParams(
+    def _params(self) -> np.ndarray:
+        """Return the law's numbers as the float array the kernels read (kernels.L_*)."""
+        return np.array(kernels.PenaltyParams(
             stiffness=self.stiffness, smoothing=self.smoothing, stiffening=STIFFENING_DEPTH_M,
             cutoff=CUTOFF_SMOOTHINGS * self.smoothing, near=NEAR_M,
-            samples=SAMPLES_PER_INTERVAL, step_depth=STEP_DEPTH_M)
+            samples=SAMPLES_PER_INTERVAL, step_depth=STEP_DEPTH_M), dtype=float)
 
     def evaluate(self, rod: Rod, kin: Kinematics) -> ContactResult:
         """
@@ -187,7 +188,7 @@ class PenaltyContact:
         """
         ob = self.obstacles
         rows, g, J, Q, Kc, A, lo, node_gaps = kernels.penalty_contacts(
-            rod.tables, kin.q, kin.g, kin.J, ob.kinds, ob.rows, ob.poses, self._params())
+            *rod.tables, kin.q, kin.g, kin.J, ob.kinds, ob.rows, ob.poses, self._params())
         energy = kernels.penalty_energy(rows, self.stiffness, self.smoothing,
                                         STIFFENING_DEPTH_M)
         return ContactResult(rows, g, J, Q, Kc, energy, A, lo, node_gaps)

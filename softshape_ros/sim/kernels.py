@@ -107,6 +107,69 @@ class RodTables(NamedTuple):
     rule_w: np.ndarray       # (G,)
 
 
+# Kernels take the tables packed into one float and one int array (:func:`pack_tables`) and
+# unpack them into a tuple of views read by these indices: numba types array arguments in C
+# but a tuple or NamedTuple of arrays element by element in Python at every call (~10 us
+# per call on numba 0.58, Ubuntu 24.04's).
+(T_SEG_LEN, T_OFFSETS, T_RADII, T_COMPS, T_N_MODES, T_BASE, T_NODE_X, T_NODE_SEG, T_INT_SEG,
+ T_INT_A, T_INT_H, T_GAUSS_X, T_GAUSS_NODE, T_GAUSS_SEG, T_GAUSS_W, T_RULE_X,
+ T_RULE_W) = range(17)
+assert RodTables._fields[T_RULE_W] == 'rule_w' and RodTables._fields[T_NODE_X] == 'node_X'
+_FLOATS = ('seg_len', 'offsets', 'radii', 'base', 'node_X', 'int_a', 'int_h', 'gauss_X',
+           'gauss_w', 'rule_x', 'rule_w')
+_INTS = ('comps', 'node_seg', 'int_seg', 'gauss_node', 'gauss_seg')
+
+
+def pack_tables(t: RodTables) -> tuple:
+    """Return (tf, ti): the tables as one float64 and one int64 array (see _unpack)."""
+    S, C, N, K, G = len(t.seg_len), len(t.comps), len(t.node_X), len(t.gauss_X), len(t.rule_x)
+    ints = [np.asarray(getattr(t, k)).ravel() for k in _INTS]
+    ti = np.concatenate([[S, t.n_modes, C, N, K, G]] + ints).astype(np.int64)
+    tf = np.concatenate([np.asarray(getattr(t, k), dtype=float).ravel() for k in _FLOATS])
+    return tf, ti
+
+
+@_kernel
+def _unpack(tf, ti):
+    """Return the tables as the tuple the kernels index with T_* (views into tf and ti)."""
+    S, nm, C, N, K, G = ti[0], ti[1], ti[2], ti[3], ti[4], ti[5]
+    M = N - 1
+    i = 6
+    comps = ti[i:i + C]
+    i += C
+    node_seg = ti[i:i + N]
+    i += N
+    int_seg = ti[i:i + M]
+    i += M
+    gauss_node = ti[i:i + K]
+    i += K
+    gauss_seg = ti[i:i + K]
+    f = 0
+    seg_len = tf[f:f + S]
+    f += S
+    offsets = tf[f:f + S + 1]
+    f += S + 1
+    radii = tf[f:f + S]
+    f += S
+    base = tf[f:f + 16].reshape((4, 4))
+    f += 16
+    node_X = tf[f:f + N]
+    f += N
+    int_a = tf[f:f + M]
+    f += M
+    int_h = tf[f:f + M]
+    f += M
+    gauss_X = tf[f:f + K]
+    f += K
+    gauss_w = tf[f:f + K]
+    f += K
+    rule_x = tf[f:f + G]
+    f += G
+    rule_w = tf[f:f + G]
+    return (seg_len, offsets, radii, comps, nm, base, node_X, node_seg, int_seg, int_a, int_h,
+            gauss_X, gauss_node, gauss_seg, gauss_w, rule_x, rule_w)
+
+
 # -- small dense algebra -------------------------------------------------------------------
 @_kernel
 def abs_max(a):
@@ -615,16 +678,17 @@ def _locate(offsets, X):
 
 
 @_kernel
-def forward(tab, q, jac):
+def forward(tf, ti, q, jac):
     """
     Return node poses g (N, 4, 4), Jacobians J (N, 6, n) and Gauss-point strains (K, 6).
 
     J is empty unless ``jac``. The poses chain the Magnus steps from the base; the Jacobian
     follows in the same pass, ``J_{k+1} = Ad_{exp(-om_k)} J_k + T(om_k) d om_k / dq``.
     """
-    seg_len, comps, int_seg, int_a, int_h = tab.seg_len, tab.comps, tab.int_seg, tab.int_a, \
-        tab.int_h
-    nm = tab.n_modes
+    tab = _unpack(tf, ti)
+    seg_len, comps, int_seg = tab[T_SEG_LEN], tab[T_COMPS], tab[T_INT_SEG]
+    int_a, int_h = tab[T_INT_A], tab[T_INT_H]
+    nm = tab[T_N_MODES]
     M = int_h.shape[0]
     n = q.shape[0]
     D = nm * comps.shape[0]
@@ -632,7 +696,7 @@ def forward(tab, q, jac):
     g = np.empty((M + 1, 4, 4))
     for i in range(4):
         for j in range(4):
-            g[0, i, j] = tab.base[i, j]
+            g[0, i, j] = tab[T_BASE][i, j]
     J = np.zeros((M + 1 if jac else 0, 6, n))
     for k in range(M):
         seg = int_seg[k]
@@ -643,7 +707,7 @@ def forward(tab, q, jac):
             for r in range(6):
                 for c in range(D):
                     J[k + 1, r, seg * D + c] += TS[r, c]
-    gauss_X, gauss_seg, offsets = tab.gauss_X, tab.gauss_seg, tab.offsets
+    gauss_X, gauss_seg, offsets = tab[T_GAUSS_X], tab[T_GAUSS_SEG], tab[T_OFFSETS]
     xi = np.empty((gauss_X.shape[0], 6))
     for i in range(gauss_X.shape[0]):
         s = gauss_seg[i]
@@ -663,7 +727,7 @@ def _at_node(node_X, X):
 def _point_frame(q, tab, g_nodes, J_nodes, X, w, g_out, J_out):
     """Write the pose and the body Jacobian at X: a Magnus step from the node before it."""
     P, Xw, E, Ms, U, TS = w
-    node_X, comps = tab.node_X, tab.comps
+    node_X, comps = tab[T_NODE_X], tab[T_COMPS]
     N = node_X.shape[0]
     X = min(max(X, 0.0), node_X[N - 1])
     k = _at_node(node_X, X)
@@ -676,9 +740,9 @@ def _point_frame(q, tab, g_nodes, J_nodes, X, w, g_out, J_out):
                 J_out[i, j] = J_nodes[k, i, j]
         return
     m = min(max(_bisect_right(node_X, X) - 1, 0), N - 2)
-    seg = tab.int_seg[m]
+    seg = tab[T_INT_SEG][m]
     D = P.shape[1] * comps.shape[0]
-    _magnus(q, tab.seg_len[seg], comps, seg * D, tab.int_a[m], X - node_X[m], True, P, Xw, E,
+    _magnus(q, tab[T_SEG_LEN][seg], comps, seg * D, tab[T_INT_A][m], X - node_X[m], True, P, Xw, E,
             Ms, U, TS)
     _pose_mul(g_nodes[m], E, g_out)
     _adinv_apply(E, J_nodes[m], J_out, J_out.shape[1])
@@ -691,7 +755,7 @@ def _point_frame(q, tab, g_nodes, J_nodes, X, w, g_out, J_out):
 def _point_pose(q, tab, g_nodes, X, w, g_out):
     """Write the pose at X (no Jacobian)."""
     P, Xw, E, Ms, U, TS = w
-    node_X, comps = tab.node_X, tab.comps
+    node_X, comps = tab[T_NODE_X], tab[T_COMPS]
     N = node_X.shape[0]
     X = min(max(X, 0.0), node_X[N - 1])
     k = _at_node(node_X, X)
@@ -701,18 +765,19 @@ def _point_pose(q, tab, g_nodes, X, w, g_out):
                 g_out[i, j] = g_nodes[k, i, j]
         return
     m = min(max(_bisect_right(node_X, X) - 1, 0), N - 2)
-    seg = tab.int_seg[m]
+    seg = tab[T_INT_SEG][m]
     D = P.shape[1] * comps.shape[0]
-    _magnus(q, tab.seg_len[seg], comps, seg * D, tab.int_a[m], X - node_X[m], False, P, Xw, E,
-            Ms, U, TS)
+    _magnus(q, tab[T_SEG_LEN][seg], comps, seg * D, tab[T_INT_A][m], X - node_X[m], False, P, Xw,
+            E, Ms, U, TS)
     _pose_mul(g_nodes[m], E, g_out)
 
 
 @_kernel
-def point_frames(tab, q, g_nodes, J_nodes, X, jac):
+def point_frames(tf, ti, q, g_nodes, J_nodes, X, jac):
     """Return poses (P, 4, 4) and body Jacobians (P, 6, n) (empty unless ``jac``) at X."""
+    tab = _unpack(tf, ti)
     n = q.shape[0]
-    w = scratch(tab.n_modes, tab.n_modes * tab.comps.shape[0])
+    w = scratch(tab[T_N_MODES], tab[T_N_MODES] * tab[T_COMPS].shape[0])
     g = np.empty((X.shape[0], 4, 4))
     J = np.zeros((X.shape[0] if jac else 0, 6, n))
     for i in range(X.shape[0]):
@@ -724,29 +789,31 @@ def point_frames(tab, q, g_nodes, J_nodes, X, jac):
 
 
 @_kernel
-def strains(tab, q, X):
+def strains(tf, ti, q, X):
     """Return the strain (P, 6) at arc lengths X (segment ends read the next segment)."""
-    D = tab.n_modes * tab.comps.shape[0]
-    P = np.empty((1, tab.n_modes))
+    tab = _unpack(tf, ti)
+    D = tab[T_N_MODES] * tab[T_COMPS].shape[0]
+    P = np.empty((1, tab[T_N_MODES]))
     xi = np.empty((X.shape[0], 6))
     for i in range(X.shape[0]):
-        seg, x = _locate(tab.offsets, X[i])
-        _legendre(2.0 * x / tab.seg_len[seg] - 1.0, P[0])
-        _strain_at(P[0], q, seg * D, tab.comps, xi[i])
+        seg, x = _locate(tab[T_OFFSETS], X[i])
+        _legendre(2.0 * x / tab[T_SEG_LEN][seg] - 1.0, P[0])
+        _strain_at(P[0], q, seg * D, tab[T_COMPS], xi[i])
     return xi
 
 
 @_kernel
-def basis_matrices(tab, seg, x, n):
+def basis_matrices(tf, ti, seg, x, n):
     """Return Phi (P, 6, n) at local abscissae x of segments seg (the dense form)."""
-    nm, nc = tab.n_modes, tab.comps.shape[0]
+    tab = _unpack(tf, ti)
+    nm, nc = tab[T_N_MODES], tab[T_COMPS].shape[0]
     P = np.empty((1, nm))
     out = np.zeros((x.shape[0], 6, n))
     for i in range(x.shape[0]):
-        _legendre(2.0 * x[i] / tab.seg_len[seg[i]] - 1.0, P[0])
+        _legendre(2.0 * x[i] / tab[T_SEG_LEN][seg[i]] - 1.0, P[0])
         for ci in range(nc):
             for j in range(nm):
-                out[i, tab.comps[ci], seg[i] * nm * nc + ci * nm + j] = P[0, j]
+                out[i, tab[T_COMPS][ci], seg[i] * nm * nc + ci * nm + j] = P[0, j]
     return out
 
 
@@ -1004,7 +1071,7 @@ def least_gap(kinds, prms, poses, pts, radii):
 
 # -- contact -------------------------------------------------------------------------------
 class PenaltyParams(NamedTuple):
-    """Numbers of the penalty contact law (contact.py documents each)."""
+    """Numbers of the penalty contact law (contact.py documents each); a float array to kernels."""
 
     stiffness: float         # k (N/m)
     smoothing: float         # delta (m)
@@ -1013,6 +1080,10 @@ class PenaltyParams(NamedTuple):
     near: float              # refine critical points of gaps below this (m)
     samples: int             # gap samples per node interval
     step_depth: float        # a Newton step may press a node this deep (m)
+
+
+L_STIFFNESS, L_SMOOTHING, L_STIFFENING, L_CUTOFF, L_NEAR, L_SAMPLES, L_STEP_DEPTH = range(7)
+assert PenaltyParams._fields[L_STEP_DEPTH] == 'step_depth'
 
 
 @_kernel
@@ -1058,9 +1129,9 @@ def _sample_gaps(tab, q, g_nodes, kind, prm, pose, near, sub, node_gap, node_slo
     (a Magnus step from the interval's first node). An interval whose nodes' cubic stays far
     from the obstacle is not sampled (gap +inf, slope +1).
     """
-    node_X, int_seg, int_a, seg_len, comps = tab.node_X, tab.int_seg, tab.int_a, \
-        tab.seg_len, tab.comps
-    offsets, radii = tab.offsets, tab.radii
+    node_X, int_seg, int_a, seg_len, comps = tab[T_NODE_X], tab[T_INT_SEG], tab[T_INT_A], \
+        tab[T_SEG_LEN], tab[T_COMPS]
+    offsets, radii = tab[T_OFFSETS], tab[T_RADII]
     P, Xw, E, Ms, U, TS = w
     D = P.shape[1] * comps.shape[0]
     N = node_X.shape[0]
@@ -1105,12 +1176,12 @@ def _gap_derivatives(tab, q, g_nodes, iv, X, kind, prm, pose, w, H, G):
     """Return (d gap/dX, d2 gap/dX2) at X in node interval iv (strain-based p'')."""
     P, Xw, E, Ms, U, TS = w
     xi = Xw[3]
-    seg = tab.int_seg[iv]
-    L = tab.seg_len[seg]
-    a = tab.int_a[iv]
-    comps = tab.comps
+    seg = tab[T_INT_SEG][iv]
+    L = tab[T_SEG_LEN][seg]
+    a = tab[T_INT_A][iv]
+    comps = tab[T_COMPS]
     D = P.shape[1] * comps.shape[0]
-    h = X - tab.node_X[iv]
+    h = X - tab[T_NODE_X][iv]
     _magnus(q, L, comps, seg * D, a, h, False, P, Xw, E, Ms, U, TS)
     _pose_mul(g_nodes[iv], E, G)
     _legendre(2.0 * (a + h) / L - 1.0, P[0])
@@ -1169,17 +1240,17 @@ def _find(tab, q, g_nodes, kinds, prms, poses, law, node_gap, node_normal, w):
     maximum. Brackets come from sign changes of the exact gap slope at the samples, so the
     result depends on q only. Fills the node gaps and normals on the way.
     """
-    node_X, node_seg, offsets, radii, seg_len, comps = tab.node_X, tab.node_seg, \
-        tab.offsets, tab.radii, tab.seg_len, tab.comps
+    node_X, node_seg, offsets, radii, seg_len, comps = tab[T_NODE_X], tab[T_NODE_SEG], \
+        tab[T_OFFSETS], tab[T_RADII], tab[T_SEG_LEN], tab[T_COMPS]
     P, Xw = w.P, w.X
     xi = Xw[3]
     N = node_X.shape[0]
     n_obj = kinds.shape[0]
-    sub = law.samples
-    near = law.near
+    sub = int(law[L_SAMPLES])
+    near = law[L_NEAR]
     S = (N - 1) * sub + 1
     L = offsets[offsets.shape[0] - 1]
-    D = tab.n_modes * comps.shape[0]
+    D = tab[T_N_MODES] * comps.shape[0]
     cand = np.empty((n_obj * (S + 1), 3))
     nc = 0
     H = np.empty((3, 3))
@@ -1227,8 +1298,8 @@ def _add_sliding(tab, seg, P, xi, g, J, D, Htv, nv, coef, tmp, gxq, Kc):
     The point is a critical point of the gap over X, so it moves with q; ``gXq = (H p')^T D
     + n^T d p'/dq`` with ``d p'/dq = R (-nu^ J_w + Phi_nu)`` (p' = R nu the tangent).
     """
-    comps = tab.comps
-    nm, ncomp = tab.n_modes, comps.shape[0]
+    comps = tab[T_COMPS]
+    nm, ncomp = tab[T_N_MODES], comps.shape[0]
     n = J.shape[1]
     for col in range(n):
         w0, w1, w2 = J[0, col], J[1, col], J[2, col]
@@ -1264,19 +1335,19 @@ def _contact_point(tab, q, g_nodes, J_nodes, X, sign, kind, prm, pose, law, w, g
     force ``D^T f`` to Q and to Kc the material term ``-D^T df/dp D`` and the sliding of the
     contact point (:func:`_add_sliding`).
     """
-    comps, seg_len = tab.comps, tab.seg_len
-    nm, ncomp = tab.n_modes, comps.shape[0]
+    comps, seg_len = tab[T_COMPS], tab[T_SEG_LEN]
+    nm, ncomp = tab[T_N_MODES], comps.shape[0]
     n = q.shape[0]
     P, Xw = w.P, w.X
     xi = Xw[3]
     _point_frame(q, tab, g_nodes, J_nodes, X, w, g, J)
-    seg, xloc = _locate(tab.offsets, X)
+    seg, xloc = _locate(tab[T_OFFSETS], X)
     _legendre(2.0 * xloc / seg_len[seg] - 1.0, P[0])
     _strain_at(P[0], q, seg * nm * ncomp, comps, xi)
     d, n0, n1, n2 = _sdf_world(kind, prm, pose, g[0, 3], g[1, 3], g[2, 3], H)
-    rad = tab.radii[seg]
+    rad = tab[T_RADII][seg]
     gap = d - rad
-    if gap > law.cutoff:
+    if gap > law[L_CUTOFF]:
         return False
     nv = (n0, n1, n2)
     kv = (xi[1] * xi[5] - xi[2] * xi[4], xi[2] * xi[3] - xi[0] * xi[5],
@@ -1289,11 +1360,11 @@ def _contact_point(tab, q, g_nodes, J_nodes, X, sign, kind, prm, pose, law, w, g
     for r in range(3):
         Htv[r] = H[r, 0] * tv[0] + H[r, 1] * tv[1] + H[r, 2] * tv[2]
         gxx += tv[r] * Htv[r] + nv[r] * (g[r, 0] * kv[0] + g[r, 1] * kv[1] + g[r, 2] * kv[2])
-    z = -gap / law.smoothing
-    pen = law.smoothing * _softplus(z)
-    force = law.stiffness * pen * (1.0 + pen / law.stiffening)
-    dforce = -law.stiffness * 0.5 * (1.0 + math.tanh(0.5 * z)) \
-        * (1.0 + 2.0 * pen / law.stiffening)
+    z = -gap / law[L_SMOOTHING]
+    pen = law[L_SMOOTHING] * _softplus(z)
+    force = law[L_STIFFNESS] * pen * (1.0 + pen / law[L_STIFFENING])
+    dforce = -law[L_STIFFNESS] * 0.5 * (1.0 + math.tanh(0.5 * z)) \
+        * (1.0 + 2.0 * pen / law[L_STIFFENING])
     row[C_X], row[C_SIGN], row[C_GAP], row[C_RAD] = X, sign, gap, rad
     for r in range(3):
         row[C_P + r] = g[r, 3]
@@ -1315,7 +1386,7 @@ def _contact_point(tab, q, g_nodes, J_nodes, X, sign, kind, prm, pose, law, w, g
             if u != 0.0:
                 for b in range(n):
                     Kc[a, b] -= u * D[r, b]
-    if X < tab.offsets[tab.offsets.shape[0] - 1] - TIP_GUARD_M and sign * gxx > SLIDE_FLOOR:
+    if X < tab[T_OFFSETS][tab[T_OFFSETS].shape[0] - 1] - TIP_GUARD_M and sign * gxx > SLIDE_FLOOR:
         _add_sliding(tab, seg, P, xi, g, J, D, Htv, nv, sign * force / gxx, tmp, gxq, Kc)
     return True
 
@@ -1362,7 +1433,7 @@ def _step_rows(rows, grad, node_gap, node_normal, g_nodes, J_nodes, depth):
 
 
 @_kernel
-def penalty_contacts(tab, q, g_nodes, J_nodes, kinds, prms, poses, law):
+def penalty_contacts(tf, ti, q, g_nodes, J_nodes, kinds, prms, poses, law):
     """
     Return the contact points of a shape and their loads.
 
@@ -1372,10 +1443,11 @@ def penalty_contacts(tab, q, g_nodes, J_nodes, kinds, prms, poses, law):
     material and sliding terms; the geometric (dead-load) part comes with the other point
     loads in :func:`geometric_stiffness`; the step rows are :func:`_step_rows`.
     """
-    N = tab.node_X.shape[0]
+    tab = _unpack(tf, ti)
+    N = tab[T_NODE_X].shape[0]
     n_obj = kinds.shape[0]
     n = q.shape[0]
-    w = scratch(tab.n_modes, tab.n_modes * tab.comps.shape[0])
+    w = scratch(tab[T_N_MODES], tab[T_N_MODES] * tab[T_COMPS].shape[0])
     node_gap = np.empty((n_obj, N))
     node_normal = np.empty((n_obj, N, 3))
     cand = _find(tab, q, g_nodes, kinds, prms, poses, law, node_gap, node_normal, w)
@@ -1399,7 +1471,7 @@ def penalty_contacts(tab, q, g_nodes, J_nodes, kinds, prms, poses, law):
             rows[kept, C_OBJ] = o
             kept += 1
     A, lo = _step_rows(rows[:kept], grad, node_gap, node_normal, g_nodes, J_nodes,
-                       law.step_depth)
+                       law[L_STEP_DEPTH])
     return rows[:kept], g[:kept], J[:kept], Q, Kc, A, lo, node_gap
 
 
@@ -1577,12 +1649,12 @@ def _own_segment_rule(tab, q, g_nodes, J_nodes, seg, x, f, fm, dfm, quad, w, Kg,
     origin), so a Gauss rule on that stretch integrates ``Phi^T Lambda`` exactly enough
     whatever the basis order.
     """
-    comps, seg_len = tab.comps, tab.seg_len
-    rule_x, rule_w = tab.rule_x, tab.rule_w
-    start = tab.offsets[seg]
+    comps, seg_len = tab[T_COMPS], tab[T_SEG_LEN]
+    rule_x, rule_w = tab[T_RULE_X], tab[T_RULE_W]
+    start = tab[T_OFFSETS][seg]
     n = q.shape[0]
-    D = tab.n_modes * comps.shape[0]
-    P = np.empty((1, tab.n_modes))
+    D = tab[T_N_MODES] * comps.shape[0]
+    P = np.empty((1, tab[T_N_MODES]))
     dl = np.empty((6, n))
     wrench = np.empty(6)
     gq = np.empty((4, 4))
@@ -1600,7 +1672,7 @@ def _own_segment_rule(tab, q, g_nodes, J_nodes, seg, x, f, fm, dfm, quad, w, Kg,
 
 
 @_kernel
-def geometric_stiffness(tab, q, g_nodes, J_nodes, grav_f, pt_X, pt_g, pt_J, pt_f, pt_m,
+def geometric_stiffness(tf, ti, q, g_nodes, J_nodes, grav_f, pt_X, pt_g, pt_J, pt_f, pt_m,
                         pt_quad):
     """
     Return (Qp, Kg): point loads in quadrature form, and the geometric stiffness of all loads.
@@ -1614,10 +1686,11 @@ def geometric_stiffness(tab, q, g_nodes, J_nodes, grav_f, pt_X, pt_g, pt_J, pt_f
     Qp covers the points flagged in ``pt_quad``; Kg all loads. Loads go into bins: bin b is
     distal to Gauss points 0..b-1.
     """
-    comps, offsets, seg_len = tab.comps, tab.offsets, tab.seg_len
-    gauss_X, gauss_node, gauss_seg, gauss_w = tab.gauss_X, tab.gauss_node, tab.gauss_seg, \
-        tab.gauss_w
-    nm = tab.n_modes
+    tab = _unpack(tf, ti)
+    comps, offsets, seg_len = tab[T_COMPS], tab[T_OFFSETS], tab[T_SEG_LEN]
+    gauss_X, gauss_node = tab[T_GAUSS_X], tab[T_GAUSS_NODE]
+    gauss_seg, gauss_w = tab[T_GAUSS_SEG], tab[T_GAUSS_W]
+    nm = tab[T_N_MODES]
     D = nm * comps.shape[0]
     n = q.shape[0]
     K = gauss_X.shape[0]
@@ -1709,16 +1782,17 @@ def _add_tendon(xi, d0, d1, d2, T, wrench, dwrench, B):
 
 
 @_kernel
-def tendon_terms(tab, xi_gauss, td_d, td_on, tension):
+def tendon_terms(tf, ti, xi_gauss, td_d, td_on, tension):
     """
     Return (Q, dQ/dq, energy) of thread-like tendons; slack (negative) tensions pull nothing.
 
     Each tendon's wrench (:func:`_add_tendon`) integrated by the Gauss rule; its potential
     is T times its length.
     """
-    comps, offsets, seg_len = tab.comps, tab.offsets, tab.seg_len
-    gauss_X, gauss_seg, gauss_w = tab.gauss_X, tab.gauss_seg, tab.gauss_w
-    nm, nc = tab.n_modes, comps.shape[0]
+    tab = _unpack(tf, ti)
+    comps, offsets, seg_len = tab[T_COMPS], tab[T_OFFSETS], tab[T_SEG_LEN]
+    gauss_X, gauss_seg, gauss_w = tab[T_GAUSS_X], tab[T_GAUSS_SEG], tab[T_GAUSS_W]
+    nm, nc = tab[T_N_MODES], comps.shape[0]
     D = nm * nc
     n = D * seg_len.shape[0]
     Q = np.zeros(n)

@@ -44,7 +44,7 @@ class Obstacle:
 
     @property
     def row(self) -> np.ndarray:
-        """Return the parameter row (built on first use: subclasses set their sizes first)."""
+        """Return the kernels' parameters, built on first use (after the subclass sets sizes)."""
         if self._row is None:
             self._row = self.params()
         return self._row

@@ -128,7 +128,7 @@ class Rod:
         self.gauss_node = np.concatenate([s * (ng + 1) + 1 + np.arange(ng)
                                           for s in range(self.nseg)])
         node_seg = np.concatenate([[0], self.int_seg])
-        self.tables = kernels.RodTables(
+        self.layout = kernels.RodTables(
             seg_len=self.lengths, offsets=self.offsets, radii=self.radii,
             comps=np.array(self.comps, dtype=np.int64), n_modes=int(self.nmodes),
             base=self.base, node_X=self.node_X, node_seg=node_seg.astype(np.int64),
@@ -136,13 +136,14 @@ class Rod:
             gauss_X=self.gauss_X, gauss_node=self.gauss_node.astype(np.int64),
             gauss_seg=self.gauss_seg.astype(np.int64), gauss_w=self.gauss_w,
             rule_x=xg, rule_w=wg)
+        self.tables = kernels.pack_tables(self.layout)     # (tf, ti), as kernels take them
 
     # -- basis -------------------------------------------------------------------------
     def phi(self, seg, x) -> np.ndarray:
         """Return Phi (P, 6, n) at local abscissae ``x`` of segments ``seg``."""
         seg = np.atleast_1d(np.asarray(seg, dtype=np.int64))
         x = np.atleast_1d(np.asarray(x, dtype=float))
-        return kernels.basis_matrices(self.tables, seg, x, self.n)
+        return kernels.basis_matrices(*self.tables, seg, x, self.n)
 
     def locate(self, X) -> tuple:
         """Return (segment, local abscissa) of global arc lengths ``X`` (clipped to the rod)."""
@@ -152,14 +153,14 @@ class Rod:
 
     def strain(self, q, X) -> np.ndarray:
         """Return xi (P, 6) at global arc lengths ``X``."""
-        return kernels.strains(self.tables, np.asarray(q, dtype=float),
+        return kernels.strains(*self.tables, np.asarray(q, dtype=float),
                                np.atleast_1d(np.asarray(X, dtype=float)))
 
     # -- kinematics --------------------------------------------------------------------
     def forward(self, q, jac: bool = True) -> Kinematics:
         """Run the forward pass: node poses and (if ``jac``) body Jacobians."""
         q = np.ascontiguousarray(q, dtype=float)
-        g, J, xi = kernels.forward(self.tables, q, jac)
+        g, J, xi = kernels.forward(*self.tables, q, jac)
         return Kinematics(q=q, g=g, J=J if jac else None, xi_gauss=xi)
 
     def at(self, kin: Kinematics, X, jac: bool = True):
@@ -168,7 +169,7 @@ class Rod:
         if jac and kin.J is None:
             raise ValueError('Rod.at: Jacobians asked of a forward pass run without them')
         J_nodes = kin.J if kin.J is not None else np.zeros((0, 6, self.n))
-        g, J = kernels.point_frames(self.tables, kin.q, kin.g, J_nodes, X, jac)
+        g, J = kernels.point_frames(*self.tables, kin.q, kin.g, J_nodes, X, jac)
         return g, (J if jac else None)
 
     def positions(self, kin: Kinematics, X) -> np.ndarray:

@@ -179,7 +179,7 @@ class Statics:
     # -- loads -------------------------------------------------------------------------
     def tendon_terms(self, kin: Kinematics, tension: np.ndarray):
         """Return (Q, dQ/dq, energy) of the tendons; slack (negative) tensions pull nothing."""
-        return kernels.tendon_terms(self.rod.tables, kin.xi_gauss, self.td_d, self.td_on,
+        return kernels.tendon_terms(*self.rod.tables, kin.xi_gauss, self.td_d, self.td_on,
                                     np.ascontiguousarray(tension, dtype=float))
 
     def point_loads(self, kin: Kinematics, loads: list[PointLoad], factor: float) -> PointLoads:
@@ -224,7 +224,7 @@ class Statics:
         conservative = True
         if self.gravity_on:
             # Dead forces have potential -f.p; world moments in 3-D do not (path dependent).
-            Qg, work = kernels.wrench_residual(kin.g, kin.J, tab.gauss_node, grav,
+            Qg, work = kernels.wrench_residual(kin.g, kin.J, rod.gauss_node, grav,
                                                self._no_moment)
             R = R - Qg
             energies.append(-work)
@@ -250,7 +250,7 @@ class Statics:
         pts = PointLoads.join(points, rod.n) if points else self._no_points
 
         def geometric():
-            return kernels.geometric_stiffness(tab, kin.q, kin.g, kin.J, grav, pts.X, pts.g,
+            return kernels.geometric_stiffness(*tab, kin.q, kin.g, kin.J, grav, pts.X, pts.g,
                                                pts.J, pts.f, pts.m, pts.quad)
 
         pending = None
