@@ -1,33 +1,43 @@
 """
 Simulator benchmark: equilibrium times, dataset throughput, contact robustness, PyElastica.
 
-Reports (never asserts) medians of one equilibrium without and with contact on one core,
-stereo samples per second of ``softshape simulate`` at 64x64 on all cores, the
-convergence failures over random actuations next to each object, and, side by side in the
-same run, PyElastica (``pip install -r requirements-bench.txt``) bringing the same dead-load
-cantilevers to rest by damped dynamics: a slender one (L/d = 40, where the elastica is
-exact) and the robot-sized one with shear on. Sizes via environment variables:
-SIM_BENCH_CONTACT_N (actuations per object, default 1000), SIM_BENCH_DATASET_N (default 1000).
-Figure: bench_out/sim_samples.png, rest and actuated images of the first samples per view.
+Reports (never asserts) the wall and CPU time of one equilibrium without and with contact
+(one process, one thread; median and p90), the convergence failures over random actuations
+next to each object, the first-call cost of the compiled kernels (cold: compiling them into
+an empty cache; warm: loading them), stereo samples per second of ``softshape simulate`` at
+64x64 on all cores and, side by side in the same run, PyElastica (``pip install -r
+requirements-bench.txt``) bringing the same dead-load cantilevers to rest by damped
+dynamics: a slender one (L/d = 40, where the elastica is exact) and the robot-sized one with
+shear on. ``SIM_BENCH_REFERENCE=/path/to/another/checkout`` times that checkout's simulator
+on the same actuations right after this one's (e.g. the code before a change). Sizes via
+environment variables: SIM_BENCH_FREE_N (default 200), SIM_BENCH_CONTACT_N (actuations per
+object, default 1000), SIM_BENCH_DATASET_N (default 1000), SIM_BENCH_COLD=0 skips the cold
+compile (~30 s of CPU). Figure: bench_out/sim_samples.png, rest and actuated images of the
+first samples per view.
 """
 
 from __future__ import annotations
 
+import json
 import os
-import statistics
 from pathlib import Path
+import statistics
+import subprocess
+import sys
 import tempfile
 import time
 
 import numpy as np
 
 from softshape_ros.config import load_rig_config
-from softshape_ros.scene import load_session
-from softshape_ros.sim import SimRig
 from softshape_ros.sim.rod import Rod, RodSpec
-from softshape_ros.sim.statics import PointLoad, SolverError, Statics
+from softshape_ros.sim.statics import PointLoad, Statics
 
-FIG = Path(__file__).resolve().parent.parent / 'bench_out' / 'sim_samples.png'
+HERE = Path(__file__).resolve().parent
+REPO = HERE.parent
+FIG = REPO / 'bench_out' / 'sim_samples.png'
+ONE_THREAD = {'OMP_NUM_THREADS': '1', 'OPENBLAS_NUM_THREADS': '1', 'MKL_NUM_THREADS': '1',
+              'NUMBA_NUM_THREADS': '1'}
 
 
 def _elastica_tip(a: float) -> np.ndarray:
@@ -153,44 +163,39 @@ def bench_pyelastica() -> dict:
     return out
 
 
-def bench_equilibria(cfg, n_contact: int) -> dict:
-    """Median equilibrium time on one core, free and with contact; failures per object."""
-    rng = np.random.default_rng(0)
-    limits = np.array(cfg.max_pressures_pa)
-    rig = SimRig(cfg)
-    free = []
-    for _ in range(200):
-        p = rng.uniform(0, 1, 6) * limits
-        t0 = time.perf_counter()
-        rig.solve(p)
-        free.append(time.perf_counter() - t0)
-    out = {'free_median_ms': 1e3 * statistics.median(free)}
-    per_object = {}
-    contact_times = []
-    for scene in load_session(os.path.join(os.path.dirname(cfg.source), 'session_sim.yaml')):
-        rig.set_scene(scene)
-        fails, touch, pen = 0, 0, 0.0
-        for _ in range(n_contact):
-            p = rng.uniform(0, 1, 6) * limits
-            t0 = time.perf_counter()
-            try:
-                st = rig.solve(p)
-            except SolverError:
-                fails += 1
-                continue
-            dt = time.perf_counter() - t0
-            if any(c.gap_m < 0 for c in st.contacts):
-                touch += 1
-                contact_times.append(dt)
-            pen = max(pen, st.max_penetration_m)
-        per_object[scene.label] = {'actuations': n_contact, 'failures': fails,
-                                   'touch_share': touch / n_contact,
-                                   'max_penetration_mm': 1e3 * pen}
-    out['contact_median_ms'] = (1e3 * statistics.median(contact_times)
-                                if contact_times else None)
-    out['contact_p90_ms'] = (1e3 * float(np.percentile(contact_times, 90))
-                             if contact_times else None)
-    out['per_object'] = per_object
+def _run_python(args, root: Path, extra_env=None, timeout=3600) -> str:
+    """Run ``python args`` in a fresh one-thread process importing softshape_ros from root."""
+    env = dict(os.environ, **ONE_THREAD, **(extra_env or {}))
+    paths = [p for p in env.get('PYTHONPATH', '').split(os.pathsep) if p]
+    env['PYTHONPATH'] = os.pathsep.join([str(root)] + paths)
+    out = subprocess.run([sys.executable, *args], env=env, cwd=str(root), capture_output=True,
+                         text=True, timeout=timeout)
+    if out.returncode != 0:
+        raise RuntimeError(f'{args[0]} under {root} failed: {out.stderr[-2000:]}')
+    return out.stdout
+
+
+def bench_equilibria(n_free: int, n_contact: int, root: Path = REPO) -> dict:
+    """Equilibrium wall/CPU times (free, touching) and failures per object, one process."""
+    out = _run_python([str(HERE / 'sim_equilibria.py'), str(n_free), str(n_contact)], root)
+    return json.loads(out.strip().splitlines()[-1])
+
+
+FIRST_CALL = (
+    'import time; t0, c0 = time.perf_counter(), time.process_time(); '
+    'from softshape_ros.sim.warmup import compile_kernels; compile_kernels(); '
+    'print(time.perf_counter() - t0, time.process_time() - c0)')
+
+
+def bench_first_call(cold: bool) -> dict:
+    """Import and first solves of every kind: from the kernel cache, and compiled afresh."""
+    out = {}
+    runs = [('cached', None)] + ([('cold_compile', 'cold')] if cold else [])
+    for name, mode in runs:
+        with tempfile.TemporaryDirectory() as d:
+            env = {'NUMBA_CACHE_DIR': d} if mode == 'cold' else None
+            wall, cpu = map(float, _run_python(['-c', FIRST_CALL], REPO, env).split())
+        out[name] = {'wall_s': wall, 'cpu_s': cpu}
     return out
 
 
@@ -234,15 +239,21 @@ def bench_dataset(cfg, n: int) -> dict:
 
 def run() -> dict:
     cfg = load_rig_config()
+    n_free = int(os.environ.get('SIM_BENCH_FREE_N', '200'))
     n_contact = int(os.environ.get('SIM_BENCH_CONTACT_N', '1000'))
     n_data = int(os.environ.get('SIM_BENCH_DATASET_N', '1000'))
-    return {
-        'equilibrium': bench_equilibria(cfg, n_contact),
-        'dataset_64x64_stereo': bench_dataset(cfg, n_data),
-        'vs_pyelastica': bench_pyelastica(),
-    }
+    out = {'load_average_1min': os.getloadavg()[0],
+           'first_call': bench_first_call(os.environ.get('SIM_BENCH_COLD', '1') != '0'),
+           'equilibrium': bench_equilibria(n_free, n_contact)}
+    ref = os.environ.get('SIM_BENCH_REFERENCE')
+    if ref:
+        out['equilibrium_reference'] = {'checkout': ref,
+                                        **bench_equilibria(n_free, n_contact, Path(ref))}
+    out['load_average_1min_after'] = os.getloadavg()[0]
+    out['dataset_64x64_stereo'] = bench_dataset(cfg, n_data)
+    out['vs_pyelastica'] = bench_pyelastica()
+    return out
 
 
 if __name__ == '__main__':
-    import json
     print(json.dumps(run(), indent=2))

@@ -49,8 +49,10 @@ def import_graph() -> tuple[dict, dict]:
                 if node.level:
                     up = here.split('.')[:len(here.split('.')) - node.level + 1]
                     base = '.'.join(up + ([base] if base else []))
-                names.add(base)
-                names |= {f'{base}.{a.name}' for a in node.names if f'{base}.{a.name}' in files}
+                subs = {f'{base}.{a.name}' for a in node.names if f'{base}.{a.name}' in files}
+                names |= subs
+                if len(subs) < len(node.names):     # names defined by the package itself
+                    names.add(base)
         inside[mod] = {n for n in names if n in files and n != mod}
         outside[mod] = {n for n in names if not n.startswith('softshape_ros')}
     return inside, outside

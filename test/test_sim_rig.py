@@ -64,3 +64,39 @@ def test_set_scene_type_checked():
     rig.set_scene(Scene(id=1, object='sphere', position_m=(0.0, 0.0, -0.05),
                         dims={'radius_m': 0.01}))
     assert rig.solve([0.0] * 6).contacts == []
+
+
+def test_scenes_that_cannot_be_placed_are_rejected_and_the_last_one_kept():
+    from softshape_ros.scene import SceneError
+    rig = SimRig(CFG)
+    good = Scene(id=1, object='cylinder', position_m=(0.03, 0.0, 0.02),
+                 dims={'radius_m': 0.008, 'height_m': 0.05})
+    rig.set_scene(good)
+    through_robot = Scene(id=2, object='cylinder', position_m=(0.015, 0.0, 0.03),
+                          dims={'radius_m': 0.008, 'height_m': 0.05})
+    with pytest.raises(SceneError, match='overlaps the robot at rest'):
+        rig.set_scene(through_robot)
+    assert rig.scene is good
+    with pytest.raises(SceneError, match='minor radius'):
+        rig.set_scene(Scene(id=3, object='ring', position_m=(0.05, 0.0, 0.02),
+                            dims={'major_radius_m': 0.004, 'minor_radius_m': 0.005}))
+    with pytest.raises(SceneError, match='skew'):
+        rig.set_scene(Scene(id=4, object='prism', position_m=(0.05, 0.0, 0.02),
+                            dims={'width_m': 0.01, 'depth_m': 0.01, 'height_m': 0.04,
+                                  'skew_rad': 1.5}))
+    assert issubclass(SceneError, ValueError)
+
+
+def test_bad_loads_and_contact_numbers_are_value_errors():
+    from softshape_ros.sim.contact import PenaltyContact
+    from softshape_ros.sim.objects import Sphere
+    from softshape_ros.sim.statics import PointLoad
+    rig = SimRig(CFG)
+    with pytest.raises(CommandError):
+        rig.solve([-1.0, 0, 0, 0, 0, 0])
+    with pytest.raises(ValueError, match='finite'):
+        rig.statics.solve(np.zeros(6), [PointLoad(0.04, force_n=(float('nan'), 0, 0))])
+    with pytest.raises(ValueError, match='0 <= s'):
+        rig.statics.solve(np.zeros(6), [PointLoad(0.5, force_n=(0.1, 0, 0))])
+    with pytest.raises(ValueError, match='positive'):
+        PenaltyContact.of([Sphere(0.01)], stiffness=0.0)

@@ -12,7 +12,7 @@ import numpy as np
 
 from softshape_ros.config import RigConfig
 from softshape_ros.pressure import check_command
-from softshape_ros.sim.contact import ContactModel
+from softshape_ros.sim.contact import PenaltyContact
 from softshape_ros.sim.objects import obstacle_from_scene
 from softshape_ros.sim.rig import chamber_actuators
 from softshape_ros.sim.rod import Rod, RodSpec
@@ -51,13 +51,13 @@ def solve_equilibrium(cfg: RigConfig, pressures_pa=None, tensions_n=None, loads=
         acts, kind = chamber_actuators(cfg), 'chambers'
     st = Statics(rod, acts, gravity_on=gravity)
     obj = obstacle_from_scene(scene)
-    contact = ContactModel([obj]) if obj is not None else None
+    contact = PenaltyContact.of([obj]) if obj is not None else None
     loads = [ld if isinstance(ld, PointLoad) else PointLoad(*ld) for ld in loads]
     q, asm, it = st.solve(u, loads, contact=contact)
     kin = asm.kin
     s = np.linspace(0.0, rod.length, max(int(samples), 2))
     g, _ = rod.at(kin, s, jac=False)
-    info = asm.extra or {}
+    result = asm.contact
     return {
         'actuation': kind, 'u': u.tolist(), 'dof': rod.n, 'order': rod.spec.order,
         'shear': bool(rod.spec.shear), 'stretch': bool(rod.spec.stretch),
@@ -65,8 +65,8 @@ def solve_equilibrium(cfg: RigConfig, pressures_pa=None, tensions_n=None, loads=
         'q': q.tolist(), 'tip_position_m': kin.g[-1][:3, 3].tolist(),
         'tip_rotation': kin.g[-1][:3, :3].tolist(), 's_m': s.tolist(),
         'backbone_m': g[:, :3, 3].tolist(),
-        'residual': float(np.abs(asm.residual).max()), 'iterations': int(it),
-        'contacts': [c.to_dict() for c in info.get('contacts', [])],
-        'max_penetration_m': float(info.get('max_penetration_m', 0.0)),
+        'residual': asm.residual_norm, 'iterations': int(it),
+        'contacts': [c.to_dict() for c in result.contacts] if result is not None else [],
+        'max_penetration_m': result.max_penetration_m if result is not None else 0.0,
         'scene': None if scene is None else scene.to_json(),
     }

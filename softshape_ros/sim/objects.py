@@ -10,40 +10,61 @@ exact distance too (nearest face interior or edge outside, largest face distance
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
-from softshape_ros.scene import Scene
+from softshape_ros.scene import Scene, SceneError
+from softshape_ros.sim import kernels
 from softshape_ros.sim.lie import pose
+
+MAX_PRISM_SKEW_RAD = np.deg2rad(80.0)   # steeper faces than this are not a placeable prism
 
 
 class Obstacle:
-    """Base: world <-> local transforms; subclasses implement the local geometry."""
+    """
+    Base: world <-> local transforms; subclasses give their kind code and parameter row.
+
+    Distances, gradients and Hessians come from one compiled kernel per kind
+    (``kernels._sdf_local``), for contact and for any caller alike.
+    """
 
     kind = 'none'
+    code = kernels.PLANE
 
     def __init__(self, position=(0.0, 0.0, 0.0), rpy=(0.0, 0.0, 0.0)):
         self.g = pose(position, rpy)
         self.R = self.g[:3, :3]
         self.t = self.g[:3, 3]
+        self._row = None
+
+    def params(self) -> np.ndarray:
+        """Return the kind's numbers as the row the kernels read (length PRISM_PARAMS)."""
+        return np.zeros(kernels.PRISM_PARAMS)
+
+    @property
+    def row(self) -> np.ndarray:
+        """Return the kernels' parameters, built on first use (after the subclass sets sizes)."""
+        if self._row is None:
+            self._row = self.params()
+        return self._row
 
     def sdf(self, p: np.ndarray):
         """Return signed distance (P,) and unit gradient (P, 3) at world points ``p``."""
-        pl = (np.atleast_2d(p) - self.t) @ self.R
-        d, n = self._sdf(pl)
-        return d, n @ self.R.T
+        d, n, _ = kernels.sdf_points(self.code, self.row, self.g, _points(p), False)
+        return d, n
 
-    def sdf_hessian(self, p: np.ndarray, eps: float = 1e-6):
+    def sdf_hessian(self, p: np.ndarray):
         """Return distance (P,), gradient (P, 3) and Hessian (P, 3, 3) in one evaluation."""
-        p = np.atleast_2d(p)
-        if hasattr(self, '_sdf_hessian'):
-            # Closed form: the contact model calls this for every refinement step.
-            d, n, H = self._sdf_hessian((p - self.t) @ self.R)
-            return d, n @ self.R.T, self.R @ H @ self.R.T
-        steps = np.concatenate([np.zeros((1, 3)), np.eye(3), -np.eye(3)]) * eps   # (7, 3)
-        d, n = self.sdf((p[:, None, :] + steps[None]).reshape(-1, 3))
-        d, n = d.reshape(len(p), 7), n.reshape(len(p), 7, 3)
-        H = np.swapaxes((n[:, 1:4] - n[:, 4:]) / (2 * eps), 1, 2)
-        return d[:, 0], n[:, 0], 0.5 * (H + np.swapaxes(H, 1, 2))
+        return kernels.sdf_points(self.code, self.row, self.g, _points(p), True)
+
+    def _sdf(self, p):
+        """Return distance and gradient at points ``p`` of the object's own frame."""
+        return kernels.sdf_points(self.code, self.row, np.eye(4), _points(p), False)[:2]
+
+    def _sdf_hessian(self, p):
+        """Return distance, gradient and Hessian (closed form) in the object's own frame."""
+        return kernels.sdf_points(self.code, self.row, np.eye(4), _points(p), True)
 
     def raycast(self, origin: np.ndarray, dirs: np.ndarray):
         """Return hit distance (P,) (inf = miss) and world normals (P, 3) for unit rays."""
@@ -56,6 +77,10 @@ class Obstacle:
         return np.inf
 
 
+def _points(p) -> np.ndarray:
+    return np.ascontiguousarray(np.atleast_2d(np.asarray(p, dtype=float)))
+
+
 def _norm(v):
     return np.sqrt(np.einsum('...i,...i->...', v, v))
 
@@ -64,36 +89,18 @@ def _normalise(v):
     return v / np.maximum(_norm(v)[..., None], 1e-300)
 
 
-def _outer(a, b):
-    return a[:, :, None] * b[:, None, :]
-
-
-def _circle_hessian(p, n, dist, R0):
-    """
-    Return the Hessian of the distance ``dist`` to a circle of radius R0 around +z.
-
-    H = [(I - n n^T) - (R0 / rho) t t^T] / dist, t the circle's tangent at p's azimuth.
-    """
-    rho = np.maximum(np.hypot(p[:, 0], p[:, 1]), 1e-12)
-    t = np.column_stack([-p[:, 1] / rho, p[:, 0] / rho, np.zeros(len(p))])
-    return (np.eye(3) - _outer(n, n) - (R0 / rho)[:, None, None] * _outer(t, t)) \
-        / np.maximum(dist, 1e-12)[:, None, None]
-
-
 class Sphere(Obstacle):
     kind = 'sphere'
+    code = kernels.SPHERE
 
     def __init__(self, radius_m, **kw):
         super().__init__(**kw)
         self.r = radius_m
 
-    def _sdf(self, p):
-        nrm = np.linalg.norm(p, axis=1)
-        return nrm - self.r, _normalise(p)
-
-    def _sdf_hessian(self, p):
-        d, n = self._sdf(p)
-        return d, n, _circle_hessian(p, n, d + self.r, 0.0)
+    def params(self):
+        row = super().params()
+        row[0] = self.r
+        return row
 
     def _raycast(self, o, d):
         b = d @ o
@@ -110,15 +117,7 @@ class Sphere(Obstacle):
 
 class Plane(Obstacle):
     kind = 'plane'
-
-    def _sdf(self, p):
-        n = np.zeros_like(p)
-        n[:, 2] = 1.0
-        return p[:, 2], n
-
-    def _sdf_hessian(self, p):
-        d, n = self._sdf(p)
-        return d, n, np.zeros((len(p), 3, 3))
+    code = kernels.PLANE
 
     def _raycast(self, o, d):
         with np.errstate(divide='ignore', invalid='ignore'):
@@ -131,50 +130,16 @@ class Plane(Obstacle):
 
 class Cylinder(Obstacle):
     kind = 'cylinder'
+    code = kernels.CYLINDER
 
     def __init__(self, radius_m, height_m, **kw):
         super().__init__(**kw)
         self.r, self.hh = radius_m, height_m / 2
 
-    def _sdf(self, p):
-        rho = np.linalg.norm(p[:, :2], axis=1)
-        dr, dz = rho - self.r, np.abs(p[:, 2]) - self.hh
-        out_r, out_z = np.maximum(dr, 0), np.maximum(dz, 0)
-        outside = np.hypot(out_r, out_z)
-        inside = np.minimum(np.maximum(dr, dz), 0)
-        d = outside + inside
-        radial = _normalise(np.column_stack([p[:, :2], np.zeros(len(p))]))
-        axial = np.zeros_like(p)
-        axial[:, 2] = np.sign(p[:, 2]) + (p[:, 2] == 0)
-        n_out = _normalise(out_r[:, None] * radial + out_z[:, None] * axial)
-        n_in = np.where((dr > dz)[:, None], radial, axial)
-        n = np.where((outside > 0)[:, None], n_out, n_in)
-        return d, n
-
-    def _sdf_hessian(self, p):
-        # Rim (outside both): distance to the rim circle; side (outside radially, or
-        # inside nearer the side): t t^T / rho; caps: flat.
-        rho = np.hypot(p[:, 0], p[:, 1])
-        if np.all((rho > self.r) & (np.abs(p[:, 2]) < self.hh)):
-            # All beside the curved side (the usual contact): the distance to its circle.
-            u = p[:, :2] / rho[:, None]
-            n = np.zeros_like(p)
-            n[:, :2] = u
-            t = np.zeros_like(p)
-            t[:, 0], t[:, 1] = -u[:, 1], u[:, 0]
-            return rho - self.r, n, _outer(t, t) / rho[:, None, None]
-        d, n = self._sdf(p)
-        rho = np.maximum(np.hypot(p[:, 0], p[:, 1]), 1e-12)
-        dr, dz = rho - self.r, np.abs(p[:, 2]) - self.hh
-        rim = (dr > 0) & (dz > 0)
-        side = ((dr > 0) & (dz <= 0)) | ((d <= 0) & (dr > dz))
-        t = np.column_stack([-p[:, 1] / rho, p[:, 0] / rho, np.zeros(len(p))])
-        H = (side / rho)[:, None, None] * _outer(t, t)
-        if rim.any():
-            pr = p[rim].copy()
-            pr[:, 2] -= np.sign(pr[:, 2]) * self.hh
-            H[rim] = _circle_hessian(pr, n[rim], d[rim], self.r)
-        return d, n, H
+    def params(self):
+        row = super().params()
+        row[:2] = self.r, self.hh
+        return row
 
     def _raycast(self, o, d):
         P = len(d)
@@ -206,21 +171,16 @@ class Cylinder(Obstacle):
 
 class Ring(Obstacle):
     kind = 'ring'
+    code = kernels.RING
 
     def __init__(self, major_radius_m, minor_radius_m, **kw):
         super().__init__(**kw)
         self.R0, self.r = major_radius_m, minor_radius_m
 
-    def _sdf(self, p):
-        rho = np.linalg.norm(p[:, :2], axis=1)
-        radial = _normalise(np.column_stack([p[:, :2], np.zeros(len(p))]))
-        centre = self.R0 * radial
-        v = p - centre
-        return np.linalg.norm(v, axis=1) - self.r, _normalise(v + 0.0 * rho[:, None])
-
-    def _sdf_hessian(self, p):
-        d, n = self._sdf(p)
-        return d, n, _circle_hessian(p, n, d + self.r, self.R0)
+    def params(self):
+        row = super().params()
+        row[:2] = self.R0, self.r
+        return row
 
     def _raycast(self, o, d):
         # Sphere tracing from the bounding sphere (the torus distance is exact).
@@ -260,6 +220,7 @@ class Ring(Obstacle):
 
 class Prism(Obstacle):
     kind = 'prism'
+    code = kernels.PRISM
 
     def __init__(self, width_m, depth_m, height_m, skew_rad, **kw):
         super().__init__(**kw)
@@ -300,54 +261,23 @@ class Prism(Obstacle):
         self._fn = fn / np.linalg.norm(fn, axis=1, keepdims=True)       # unit face normals
         self._fn_a = np.einsum('fi,fi->f', self._fn, self._fa)
 
-    def _closest(self, p):
-        """Return distance, normal, nearest-feature index (< 12: edge) and edge parameter."""
-        # Exact distance: inside, the largest face distance; outside, the nearest point
-        # among the face interiors and the 12 edges (C1 outside, so contact is smooth).
-        # Distances come from (P, 12) and (P, 6) products; only the nearest feature's
-        # point is built.
-        if not hasattr(self, '_fa'):
-            self._features()
-        e = p @ self.normals.T - self.offsets
-        inside_d = e.max(axis=1)
-        pp = np.einsum('pi,pi->p', p, p)[:, None]
-        dot = p @ self._eab.T - self._ea_eab                             # (p - a) . (b - a)
-        t = np.clip(dot / self._eab2, 0.0, 1.0)
-        rel2 = pp - 2.0 * (p @ self._ea.T) + self._ea2                   # |p - a|^2
-        de = np.sqrt(np.maximum(rel2 - t * (2.0 * dot - t * self._eab2), 0.0))
-        ab = (p @ self._fproj.T).reshape(-1, 6, 2) - self._fa_ab
-        ok = ((ab >= 0) & (ab <= 1)).all(axis=2)
-        h = p @ self._fn.T - self._fn_a                                 # to each face plane
-        alld = np.concatenate([de, np.where(ok, np.abs(h), np.inf)], axis=1)
-        k = np.argmin(alld, axis=1)
-        rows = np.arange(len(p))
-        ke = np.minimum(k, 11)
-        kf = np.maximum(k - 12, 0)
-        closest = np.where((k < 12)[:, None], self._ea[ke] + t[rows, ke, None] * self._eab[ke],
-                           p - h[rows, kf, None] * self._fn[kf])
-        outside = inside_d > 0
-        d = np.where(outside, alld[rows, k], inside_d)
-        n_out = _normalise(p - closest)
-        n_in = self.normals[np.argmax(e, axis=1)]
-        k = np.where(outside, k, 12)          # inside: a face (flat)
-        return d, np.where(outside[:, None], n_out, n_in), k, t[rows, np.minimum(k, 11)]
-
-    def _sdf(self, p):
-        return self._closest(p)[:2]
-
-    def _sdf_hessian(self, p):
-        # Faces are flat; an edge's interior is a line (I - n n^T - e e^T) / d, its ends
-        # vertices (I - n n^T) / d.
-        d, n, k, t = self._closest(p)
-        edge = k < 12
-        H = np.zeros((len(p), 3, 3))
-        if edge.any():
-            ne = n[edge]
-            Hm = np.eye(3) - _outer(ne, ne)
-            ax = _normalise(self._eab[k[edge]])
-            line = ((t[edge] > 0.0) & (t[edge] < 1.0))[:, None, None]
-            H[edge] = (Hm - line * _outer(ax, ax)) / np.maximum(d[edge], 1e-12)[:, None, None]
-        return d, n, H
+    def params(self):
+        """Faces (normals, offsets) and the edge and face tables of the exact distance."""
+        self._features()
+        k = kernels
+        row = super().params()
+        row[k.PRISM_NORMALS:k.PRISM_OFFSETS] = self.normals.ravel()
+        row[k.PRISM_OFFSETS:k.PRISM_EA] = self.offsets
+        row[k.PRISM_EA:k.PRISM_EAB] = self._ea.ravel()
+        row[k.PRISM_EAB:k.PRISM_EAB2] = self._eab.ravel()
+        row[k.PRISM_EAB2:k.PRISM_EA_EAB] = self._eab2
+        row[k.PRISM_EA_EAB:k.PRISM_EA2] = self._ea_eab
+        row[k.PRISM_EA2:k.PRISM_FPROJ] = self._ea2
+        row[k.PRISM_FPROJ:k.PRISM_FA_AB] = self._fproj.ravel()
+        row[k.PRISM_FA_AB:k.PRISM_FN] = self._fa_ab.ravel()
+        row[k.PRISM_FN:k.PRISM_FN_A] = self._fn.ravel()
+        row[k.PRISM_FN_A:k.PRISM_PARAMS] = self._fn_a
+        return row
 
     def _raycast(self, o, d):
         den = d @ self.normals.T                          # (P, 6)
@@ -370,10 +300,47 @@ class Prism(Obstacle):
 
 
 def obstacle_from_scene(scene: Scene | None) -> Obstacle | None:
-    """Return the scene's object as an :class:`Obstacle` (None for no object)."""
+    """
+    Return the scene's object as an :class:`Obstacle` (None for no object).
+
+    Raises :class:`~softshape_ros.scene.SceneError` for a shape that has no body: a ring
+    whose tube is as thick as its radius, a prism skewed flat.
+    """
     if scene is None or scene.object == 'none':
         return None
+    dims = scene.dims
+    if scene.object == 'ring' and dims['minor_radius_m'] >= dims['major_radius_m']:
+        raise SceneError(f'scene {scene.id}: ring minor radius {dims["minor_radius_m"]} m '
+                         f'must be below its major radius {dims["major_radius_m"]} m')
+    if scene.object == 'prism' and not abs(float(dims['skew_rad'])) <= MAX_PRISM_SKEW_RAD:
+        raise SceneError(f'scene {scene.id}: prism skew {dims["skew_rad"]} rad is beyond '
+                         f'+-{MAX_PRISM_SKEW_RAD:.3f} rad')
     kw = dict(position=scene.position_m, rpy=scene.rpy_rad)
     cls = {'sphere': Sphere, 'plane': Plane, 'cylinder': Cylinder, 'ring': Ring,
            'prism': Prism}[scene.object]
-    return cls(**scene.dims, **kw)
+    return cls(**dims, **kw)
+
+
+@dataclass(frozen=True)
+class ObstacleSet:
+    """The obstacles as the kernels read them: kind codes, parameter rows, poses."""
+
+    obstacles: tuple
+    kinds: np.ndarray        # (O,) int
+    rows: np.ndarray         # (O, PRISM_PARAMS)
+    poses: np.ndarray        # (O, 4, 4)
+
+    @classmethod
+    def of(cls, obstacles) -> 'ObstacleSet':
+        obs = tuple(o for o in obstacles if o is not None)
+        rows = np.array([o.row for o in obs]).reshape(len(obs), kernels.PRISM_PARAMS)
+        return cls(obs, np.array([o.code for o in obs], dtype=np.int64), rows,
+                   np.array([o.g for o in obs]).reshape(len(obs), 4, 4))
+
+    def __len__(self) -> int:
+        return len(self.obstacles)
+
+    def least_gap(self, points: np.ndarray, radii: np.ndarray) -> float:
+        """Return the least ``distance - radius`` of tube points (P, 3) to any obstacle."""
+        return float(kernels.least_gap(self.kinds, self.rows, self.poses, _points(points),
+                                       np.asarray(radii, dtype=float)))

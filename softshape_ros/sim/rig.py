@@ -15,16 +15,25 @@ import numpy as np
 
 from softshape_ros.config import RigConfig
 from softshape_ros.pressure import check_command
-from softshape_ros.scene import Scene
+from softshape_ros.scene import Scene, SceneError
+from softshape_ros.sim import kernels
 from softshape_ros.sim.camera import PinholeCamera
-from softshape_ros.sim.contact import DEFAULT_SMOOTHING_M, DEFAULT_STIFFNESS_N_M, ContactModel
-from softshape_ros.sim.objects import obstacle_from_scene
+from softshape_ros.sim.contact import (DEFAULT_SMOOTHING_M, DEFAULT_STIFFNESS_N_M,
+                                       PenaltyContact)
+from softshape_ros.sim.objects import ObstacleSet, obstacle_from_scene
 from softshape_ros.sim.render import RenderError, pack_objects, render_view
 from softshape_ros.sim.rod import Rod, RodSpec
 from softshape_ros.sim.statics import Actuator, SolverError, Statics
 
 SPHERE_SPACING_M = 0.0015
 PREDICTED_DEPTH_M = 1e-3    # skip the free solve when its prediction is this deep inside
+TOUCH_TOL_M = 1e-4          # the touching start ends this close outside (regula falsi)
+TOUCH_PATH_TOL = 1e-6       # ... or when its bracket on the path is this short
+TOUCH_STEPS = 20
+# The contact solve's fallbacks: (start, penalty stiffness stages); None starts straight.
+STIFFENING_STAGES = (('touching', (1.0,)), ('touching', (0.1, 1.0)),
+                     (None, (0.01, 0.1, 1.0)))
+STAGE_TOL = 1e-6            # relative residual of the softened stages (only starts)
 
 
 @dataclass
@@ -85,26 +94,46 @@ class SimRig:
         self.scene = None
         self.obstacles = []
         self._render_objects = {n: pack_objects(cam, []) for n, cam in self.cameras.items()}
+        self.obstacle_set = ObstacleSet.of([])
         self.contact = None
         self._q = None
         self._free = None           # (q, assembly, pressures) of the last free equilibrium
         sample_n = int(np.ceil(self.rod.length / SPHERE_SPACING_M)) + 1
         self.sample_s = np.linspace(0.0, self.rod.length, sample_n)
+        self._sample_radii = self.rod.radii[self.rod.locate(self.sample_s)[0]]
+        self._node_radii = self.rod.radii[self.rod.locate(self.rod.node_X)[0]]
 
     def set_scene(self, scene: Scene | None) -> None:
-        """Place the scene's object (None or object 'none': the robot alone)."""
+        """
+        Place the scene's object (None or object 'none': the robot alone).
+
+        Raises :class:`~softshape_ros.scene.SceneError` (a ValueError) for an object that
+        cannot be placed: one overlapping the robot at rest, or a shape without a body.
+        """
         if scene is not None and not isinstance(scene, Scene):
             raise TypeError(f'set_scene expects a Scene or None, got {type(scene).__name__}')
-        self.scene = scene
         obj = obstacle_from_scene(scene)
-        self.obstacles = [obj] if obj is not None else []
-        self._render_objects = {}
+        obstacles = [obj] if obj is not None else []
+        obstacle_set = ObstacleSet.of(obstacles)
+        if obstacles:
+            rest = self.rod.forward(np.zeros(self.rod.n), jac=False)
+            pts = np.vstack([rest.g[:, :3, 3], self.rod.positions(rest, self.sample_s)])
+            rad = np.concatenate([self._node_radii, self._sample_radii])
+            gap = obstacle_set.least_gap(pts, rad)
+            if gap < 0.0:
+                raise SceneError(f'scene {scene.id}: the {scene.object} overlaps the robot at '
+                                 f'rest by {-gap * 1e3:.2f} mm; it cannot be placed there')
+        render_objects = {}
         for name, cam in self.cameras.items():
             try:
-                self._render_objects[name] = pack_objects(cam, self.obstacles)
+                render_objects[name] = pack_objects(cam, obstacles)
             except RenderError as exc:    # e.g. a camera inside the object: solving still works
-                self._render_objects[name] = exc
-        self.contact = (ContactModel(self.obstacles, *self.contact_args)
+                render_objects[name] = exc
+        self.scene = scene
+        self.obstacles = obstacles
+        self.obstacle_set = obstacle_set
+        self._render_objects = render_objects
+        self.contact = (PenaltyContact.of(self.obstacles, *self.contact_args)
                         if self.obstacles and self.contact_on else None)
         self._q = None
         self._free = None
@@ -123,17 +152,16 @@ class SimRig:
             q0, last, p_last = self._free
             st = self.statics
             dQ = st.B_ch @ (p - p_last)[st.chamber_idx]
-            try:
-                q0 = q0 + np.linalg.solve(last.tangent, dQ)
-            except np.linalg.LinAlgError:
-                pass
+            step, ok = kernels.lu_solve(last.tangent, dQ)
+            if ok:
+                q0 = q0 + step
         g0 = self._node_gap(q0) if self.contact is not None and q0 is not None else np.inf
         if g0 < -PREDICTED_DEPTH_M:
             # The predicted free shape is deep in the object: the free equilibrium would
             # only serve as the end of the touching-start path, and the prediction does
             # that as well (the contact solve ends where it ends either way).
             q, asm, it = self._solve_contact(p, self._touching_start(q0, g0))
-            if not asm.extra.get('contacts'):
+            if not asm.contact.any:
                 self._free = (q, asm, p)      # it was free after all: a fresh base
             self._q = q
             return self._state(q, p, asm, it)
@@ -144,12 +172,12 @@ class SimRig:
             # contact between nodes, or one within the penalty's reach): with no candidate
             # it adds nothing to asm.
             g_free = self._node_gap(q, asm.kin)
-            info = None if g_free < 0.0 else self.contact(self.rod, asm.kin)[1]
-            if info is None or info['contacts']:
+            near = None if g_free < 0.0 else self.contact.evaluate(self.rod, asm.kin)
+            if near is None or near.any:
                 q, asm, it2 = self._solve_contact(p, self._touching_start(q, g_free))
                 it += it2
             else:
-                asm.extra = info
+                asm.contact = near
         self._q = q
         return self._state(q, p, asm, it)
 
@@ -157,30 +185,27 @@ class SimRig:
         """
         Solve with contact from ``q0``; on failure retry with the penalty stiffened in stages.
 
-        Attempts: direct from ``q0``; from ``q0`` with the penalty at 1/10 first; from the
-        straight rod with 1/100, 1/10, 1. The last failure raises :class:`SolverError`.
+        Attempts (``STIFFENING_STAGES``): direct from ``q0``; from ``q0`` with the penalty at
+        1/10 first; from the straight rod with 1/100, 1/10, 1. The last failure raises
+        :class:`SolverError`.
         """
-        k_full = self.contact.k
         its, error = 0, None
-        for start, stages in ((q0, (1.0,)), (q0, (0.1, 1.0)), (None, (0.01, 0.1, 1.0))):
-            q = start
+        for start, stages in STIFFENING_STAGES:
+            q = q0 if start == 'touching' else None
             try:
                 for f in stages:
-                    self.contact.k = k_full * f
-                    q, asm, it = self.statics.solve(p, q0=q, contact=self.contact,
-                                                    tol=1e-6 if f < 1 else 1e-10)
+                    q, asm, it = self.statics.solve(p, q0=q, contact=self.contact.scaled(f),
+                                                    tol=STAGE_TOL if f < 1 else 1e-10)
                     its += it
                 return q, asm, its
             except SolverError as exc:
                 error = exc
-            finally:
-                self.contact.k = k_full
         raise error
 
     def _node_gap(self, q, kin=None) -> float:
         """Return the least gap (m) between the tube at the nodes and the objects."""
         kin = kin if kin is not None else self.rod.forward(q, jac=False)
-        return min(float(gap.min()) for gap, _ in self.contact.node_gaps(self.rod, kin))
+        return self.obstacle_set.least_gap(kin.g[:, :3, 3], self._node_radii)
 
     def _touching_start(self, q_free, gap_free=None):
         """
@@ -204,7 +229,7 @@ class SimRig:
         if ga <= 0.0 or gb >= 0.0:
             return q_prev if ga <= 0.0 else q_free
         side = 0
-        for _ in range(20):
+        for _ in range(TOUCH_STEPS):
             t = (a * gb - b * ga) / (gb - ga)
             gt = gap(t)
             if gt >= 0.0:
@@ -217,7 +242,7 @@ class SimRig:
                 if side == -1:
                     ga *= 0.5
                 side = -1
-            if 0.0 <= gt < 1e-4 or b - a < 1e-6:
+            if 0.0 <= gt < TOUCH_TOL_M or b - a < TOUCH_PATH_TOL:
                 break
         return q_prev + a * (q_free - q_prev)
 
@@ -225,13 +250,14 @@ class SimRig:
         rod = self.rod
         kin = asm.kin
         g, _ = rod.at(kin, self.sample_s, jac=False)
-        seg, _ = rod.locate(self.sample_s)
-        info = asm.extra or {}
+        contact = asm.contact
         return SimState(q=q, pressures_pa=np.asarray(p, dtype=float), s_m=self.sample_s.copy(),
-                        backbone_m=g[:, :3, 3], radii_m=rod.radii[seg], tip_pose=kin.g[-1].copy(),
-                        residual=float(np.abs(asm.residual).max()), iterations=int(it),
-                        contacts=list(info.get('contacts', [])),
-                        max_penetration_m=float(info.get('max_penetration_m', 0.0)))
+                        backbone_m=g[:, :3, 3], radii_m=self._sample_radii.copy(),
+                        tip_pose=kin.g[-1].copy(), residual=asm.residual_norm,
+                        iterations=int(it),
+                        contacts=contact.contacts if contact is not None else [],
+                        max_penetration_m=(contact.max_penetration_m
+                                           if contact is not None else 0.0))
 
     def _noisy(self, img: np.ndarray) -> np.ndarray:
         if self.image_noise_std > 0:
