@@ -19,6 +19,9 @@ def register(sub) -> None:
     p.add_argument('--actuations', type=int, default=d.actuations, help='samples per scene')
     p.add_argument('--rate-hz', type=float, default=d.rate_hz, help='actuation rate (paper: 2)')
     p.add_argument('--max-steps', type=int, default=d.max_steps, help='training steps at most')
+    p.add_argument('--pretrained', default=d.pretrained,
+                   help="checkpoint to fine-tune ('' = train from scratch; default: the "
+                        "shipped models/ours_stereo_gray, rebuilt by make pretrain)")
     p.add_argument('--threads', type=int, default=d.threads, help='torch threads')
     p.add_argument('--live-scenes', type=int, default=d.live_scenes,
                    help='unseen placements in the live stage')
