@@ -71,6 +71,10 @@ def test_cli_train_evaluate_export(tmp_path, capsys):
                 '--validation', '--out', str(tmp_path / 'ev')]) == 0
     res = json.loads(capsys.readouterr().out)
     assert res['samples'] < 60 and set(res['model']) == set(res['copy'])
+    # No contact record in this dataset: unsplit metrics, and metrics.json says why.
+    saved = json.loads((tmp_path / 'ev' / 'metrics.json').read_text())
+    assert saved['split'].startswith('none') and 'touching' not in saved
+    assert {'ssim', 'psnr_db', 'intrusion', 'tip_error_median_px'} <= set(saved['model'])
     assert (tmp_path / 'ev' / 'panels.png').stat().st_size > 1000
     assert cli(['export', '--checkpoint', str(ck), '--out', str(tmp_path / 'm.onnx')]) == 0
     assert json.loads(capsys.readouterr().out)['max_abs_diff'] <= 1e-4

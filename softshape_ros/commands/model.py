@@ -79,7 +79,8 @@ def _reproduce(args) -> int:
 def _pretrain(args) -> int:
     from softshape_ros.experiments.pretrain import PretrainSettings, pretrain
     s = PretrainSettings(samples=args.samples, scenes=args.scenes, seed=args.seed,
-                         max_steps=args.max_steps, eval_every=args.eval_every,
+                         max_steps=args.max_steps, batch_size=args.batch_size, lr=args.lr,
+                         eval_every=args.eval_every,
                          patience=args.patience, threads=args.threads, workers=args.workers)
     print(json.dumps(pretrain(s, args.out, args.work, progress=not args.quiet)))
     return 0
@@ -160,6 +161,8 @@ def register(sub) -> None:
     p.add_argument('--scenes', type=int, default=d.scenes)
     p.add_argument('--seed', type=int, default=d.seed)
     p.add_argument('--max-steps', type=int, default=d.max_steps)
+    p.add_argument('--batch-size', type=int, default=d.batch_size)
+    p.add_argument('--lr', type=float, default=d.lr)
     p.add_argument('--eval-every', type=int, default=d.eval_every)
     p.add_argument('--patience', type=int, default=d.patience)
     p.add_argument('--threads', type=int, default=d.threads)

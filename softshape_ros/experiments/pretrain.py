@@ -11,6 +11,7 @@ thread count, same weights.
 from __future__ import annotations
 
 import json
+import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -22,12 +23,14 @@ from softshape_ros.model.train import TrainConfig, train
 class PretrainSettings:
     """The simulated data and the training budget of the shipped checkpoint."""
 
-    samples: int = 6000
-    scenes: int = 200
+    samples: int = 3000
+    scenes: int = 100
     views: tuple = ('main', 'side')
     seed: int = 0
-    max_steps: int = 3000
-    eval_every: int = 50
+    max_steps: int = 1200
+    batch_size: int = 64            # more updates per sample than 256 at this budget
+    lr: float = 2e-3
+    eval_every: int = 100
     patience: int = 10
     threads: int = 2
     workers: int = 0
@@ -56,10 +59,14 @@ def pretrain(settings: PretrainSettings, out, work, progress: bool = True) -> di
     """Simulate (or reuse) the data, train ``ours``, write the checkpoint to ``out``."""
     ds = simulated_dataset(settings, work, progress)
     cfg = TrainConfig(arch='ours', seed=settings.seed, split='scene',
+                      batch_size=settings.batch_size, lr=settings.lr,
                       max_steps=settings.max_steps, eval_every=settings.eval_every,
                       patience=settings.patience, threads=settings.threads)
+    t0 = time.perf_counter()
     res = train(ds, cfg, out=out, progress=progress, desc='pretrain')
+    secs = time.perf_counter() - t0
     return {'checkpoint': str(out), 'dataset': str(ds.path), 'samples': len(ds),
             'steps': res.steps, 'val_rmse_255': 255 * res.best_val_mse ** 0.5,
-            'copy_val_rmse_255': 255 * res.copy_val_mse ** 0.5,
+            'copy_val_rmse_255': 255 * res.copy_val_mse ** 0.5, 'train_seconds': round(secs),
+            'train_samples_per_s': round(res.steps * settings.batch_size / secs, 1),
             'settings': asdict(settings)}

@@ -74,3 +74,9 @@ def touching_flags(ds, idx=None):
         return None
     flags = np.asarray(contact.touching, dtype=bool)
     return flags if idx is None else flags[np.asarray(idx, dtype=np.int64)]
+
+
+def no_contact_why(ds) -> str:
+    """Say why a dataset has no contact record (the reason its loader recorded)."""
+    why = (ds.meta.get('contact') or {}).get('why') if isinstance(ds.meta, dict) else None
+    return f'no contact record ({why})' if why else 'the dataset has no contact record'

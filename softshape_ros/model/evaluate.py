@@ -13,7 +13,7 @@ import matplotlib
 import numpy as np
 
 from softshape_ros.data import load_dataset
-from softshape_ros.model.data import touching_flags
+from softshape_ros.model.data import no_contact_why, touching_flags
 from softshape_ros.model.metrics import RobotSilhouette, evaluate_arrays, yellow_mask
 from softshape_ros.model.predictor import Predictor
 
@@ -62,7 +62,8 @@ def evaluate(checkpoint, dataset, indices=None, out_dir=None, panels: int = 6,
     initial, target = np.asarray(ds.initial[idx]), np.asarray(ds.target[idx])
     predicted = predict_rows(pred, ds, idx)
     sil = silhouette or RobotSilhouette.fit(np.asarray(ds.initial))
-    result = evaluate_arrays(initial, target, predicted, sil, touching_flags(ds, idx))
+    result = evaluate_arrays(initial, target, predicted, sil, touching_flags(ds, idx),
+                             no_contact_why(ds))
     result.update(checkpoint=str(checkpoint), dataset=str(ds.path), arch=pred.config['arch'],
                   views=pred.views, silhouette_threshold=sil.threshold)
     if out_dir is not None:

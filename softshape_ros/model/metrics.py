@@ -251,18 +251,19 @@ def image_metrics(pred, target, changed, tgt_sil, tgt_tip, obj_sil, silhouette) 
 
 
 def evaluate_arrays(initial, target, pred, silhouette: RobotSilhouette,
-                    touching=None) -> dict:
+                    touching=None, no_split_why: str = 'no contact record') -> dict:
     """
     Every metric of ``pred`` beside the copy-the-initial-image baseline.
 
     With ``touching`` (N bool: the sample's robot touches the object), the same metrics
     again over the touching and the free samples (``touching`` / ``free`` sections, each
-    with its own ``model`` and ``copy``); without it, ``split`` says why there is none.
+    with its own ``model`` and ``copy``); without it, ``split`` says why there is none
+    (``no_split_why``).
     """
     initial, target, pred = (np.asarray(a) for a in (initial, target, pred))
     out = _evaluate_set(initial, target, pred, silhouette)
     if touching is None:
-        out['split'] = 'none: the dataset has no contact record (touching.npy)'
+        out['split'] = f'none: {no_split_why}'
         return out
     touching = np.asarray(touching, dtype=bool)
     if touching.shape != (len(target),):

@@ -79,7 +79,7 @@ def coordinate_planes(b: int, h: int, w: int, like: torch.Tensor) -> torch.Tenso
 
 class OursNet(nn.Module):
     """
-    U-Net with FiLM conditioning at every stage that moves the robot instead of redrawing all.
+    U-Net with FiLM conditioning at every stage, drawing only what the actuation changes.
 
     Why: the paper's constant pressure planes only bias the first layer, and its bottleneck
     must re-draw the static background and object from a 4x4 latent. Skips carry the scene
@@ -88,16 +88,15 @@ class OursNet(nn.Module):
     where the tip goes depends on the actuation, and the network needs to know where it is
     drawing. All FiLM parameters come from one linear projection of the actuation embedding.
 
-    Output ``composite`` (the default): per view an alpha ``a`` and colours ``c``, and
-    ``out = a c + (1 - a) initial``. Where nothing moves ``a`` is 0 and the initial pixels are
-    copied exactly (background and object stay sharp); where the robot arrives or leaves
-    ``a`` is 1 and ``c`` is the robot's or the uncovered scene's shade; a sigmoid ``a`` makes
-    the edge a choice rather than an average (design study in docs/model.md). Output
-    ``residual`` (the earlier design): ``out = initial + change``.
+    Output ``residual`` (the default): ``out = initial + change``, the change drawn by a
+    zero-initialised head, so training starts as the copy baseline and only what moves is
+    drawn. Output ``composite`` (tried, lost at a fixed budget: docs/model.md, design
+    study): per view an alpha ``a`` and colours ``c``, ``out = a c + (1 - a) initial``, so
+    unchanged pixels are copied exactly and a sigmoid ``a`` makes an edge a choice.
     """
 
     def __init__(self, views: int, channels: int, widths=(16, 32, 64, 64), cond: int = 64,
-                 coords: bool = True, output: str = 'composite'):
+                 coords: bool = True, output: str = 'residual'):
         super().__init__()
         if output not in OUTPUTS:
             raise ValueError(f'unknown output {output!r} (choose from {", ".join(OUTPUTS)})')

@@ -23,7 +23,7 @@ import numpy as np
 from tqdm import tqdm
 
 from softshape_ros.data import Dataset, load_dataset
-from softshape_ros.model.data import split_indices, touching_flags
+from softshape_ros.model.data import no_contact_why, split_indices, touching_flags
 from softshape_ros.model.evaluate import predict_rows, prediction_panels
 from softshape_ros.model.metrics import RobotSilhouette, evaluate_arrays
 from softshape_ros.model.predictor import Predictor
@@ -84,7 +84,7 @@ def _fit_and_score(ds, rows, test, tc, ckpt, sil, desc) -> dict:
     pred = Predictor.from_checkpoint(ckpt)
     p = predict_rows(pred, ds, test)
     m = evaluate_arrays(np.asarray(ds.initial[test]), np.asarray(ds.target[test]), p, sil,
-                        touching_flags(ds, test))
+                        touching_flags(ds, test), no_contact_why(ds))
     m.update(train_seconds=secs, steps=res.steps,
              val_rmse=255 * res.best_val_mse ** 0.5)
     return m
