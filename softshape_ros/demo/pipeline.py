@@ -43,14 +43,18 @@ class DemoSettings:
     rate_hz: float = 2.0
     max_steps: int = 300
     pretrained: str = str(PRETRAINED) if (PRETRAINED / 'config.json').is_file() else ''
+    finetune_lr: float = 1e-3       # a gentler start than training from scratch (4e-3)
+    finetune_steps: int = 150       # at batch 64: an eighth of the from-scratch budget
     threads: int = 2
     live_scenes: int = 2
     live_commands: int = 8
     seed: int = 0
 
     def stage_key(self, stage: str) -> dict:
+        train = ('max_steps', 'seed', 'pretrained', 'finetune_lr', 'finetune_steps')
         keys = {'record': ('scenes', 'actuations', 'rate_hz', 'seed'),
-                'dataset': (), 'train': ('max_steps', 'seed', 'pretrained'), 'evaluate': (),
+                'dataset': (), 'train': train,
+                'evaluate': (),
                 'live': ('live_scenes', 'live_commands', 'seed')}
         upto = STAGES[:STAGES.index(stage) + 1]
         key = {k: getattr(self, k) for s in upto for k in keys[s]}
@@ -275,11 +279,15 @@ def run_demo(settings: DemoSettings, fresh: bool = False) -> Path:
                    'count': meta.get('count'), 'dropped': meta.get('dropped'),
                    'views': meta.get('views')}
         elif name == 'train':
-            init = ['--init', settings.pretrained] if settings.pretrained else []
+            if settings.pretrained:     # a short, gentle fine-tune of the shipped model
+                budget = ['--init', settings.pretrained, '--lr', str(settings.finetune_lr),
+                          '--max-steps', str(settings.finetune_steps), '--batch-size', '64']
+            else:
+                budget = ['--max-steps', str(settings.max_steps)]
             out = run_tool(['train', '--dataset', str(root / 'dataset'), '--out',
                             str(root / 'model'), '--arch', 'ours', '--seed', str(settings.seed),
-                            '--max-steps', str(settings.max_steps), '--threads',
-                            str(settings.threads)] + init, root / 'logs' / 'train.txt')
+                            '--threads', str(settings.threads)] + budget,
+                           root / 'logs' / 'train.txt')
             res = dict(last_json(out), pretrained=settings.pretrained or None)
         elif name == 'evaluate':
             run_tool(['evaluate', '--checkpoint', str(root / 'model'), '--dataset',

@@ -27,7 +27,7 @@ class PretrainSettings:
     scenes: int = 100
     views: tuple = ('main', 'side')
     seed: int = 0
-    max_steps: int = 1200
+    max_steps: int = 700
     batch_size: int = 64            # more updates per sample than 256 at this budget
     lr: float = 2e-3
     eval_every: int = 100

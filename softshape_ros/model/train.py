@@ -249,6 +249,13 @@ def _fit(net, rows, objective, config, lr, rank, world, progress, desc) -> dict:
                                       tv.numel(), len(tv))
     copy_mse = copy_sse / n_pix
     best, best_mse, best_state, bad, step, history = math.inf, math.inf, None, 0, 0, []
+    if config.init is not None:     # fine-tuning never ends worse than where it started
+        net.eval()
+        sse, vloss = _all_sum(world, *(_validate(net, rows.val, objective)
+                                       if len(xv) else (0.0, 0.0)))
+        best, best_mse = vloss / n_val, sse / n_pix
+        best_state = copy.deepcopy(net.state_dict())
+        history.append({'step': 0, 'train_loss': None, 'val_loss': best, 'val_mse': best_mse})
     bar = tqdm(total=config.max_steps, desc=desc, disable=not progress, leave=False,
                dynamic_ncols=True)
     run_loss, run_n = 0.0, 0
