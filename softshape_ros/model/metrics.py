@@ -131,6 +131,10 @@ def otsu_thresholds(values: np.ndarray) -> tuple[int, int]:
     return arg
 
 
+#: The tip is the centroid of the robot's pixels this close to its furthest one (px).
+TIP_BAND_PX = 2.0
+
+
 class RobotSilhouette:
     """
     Three-class segmentation: the robot (dark) and its tip, the object (mid), the background.
@@ -186,17 +190,27 @@ class RobotSilhouette:
         return ndimage.binary_opening(mid, structure=np.ones((1, 1, 3, 3), bool))
 
     def tips(self, images) -> np.ndarray:
-        """N x V x 2 tip (row, col); NaN where no robot pixel is seen."""
+        """
+        N x V x 2 tip (row, col); NaN where no robot pixel is seen.
+
+        The tip is the centroid of the robot pixels within ``TIP_BAND_PX`` of the furthest
+        one from the base, not that pixel alone: on the rounded, oblique tip the furthest
+        pixel jumps by several pixels when the outline gains or loses one anti-aliased pixel
+        (e.g. next to an object, whose edge blends darker than the background does).
+        """
         m = self.mask(images)
         n, v, s, _ = m.shape
-        rr, cc = np.mgrid[0:s, 0:s]
+        rr, cc = np.mgrid[0:s, 0:s].astype(np.float64)
         out = np.full((n, v, 2), np.nan)
         for j in range(v):
-            d = (rr - self.base_rc[j, 0]) ** 2 + (cc - self.base_rc[j, 1]) ** 2
-            dm = np.where(m[:, j], d[None], -1.0).reshape(n, -1)
-            k = dm.argmax(axis=1)
-            ok = dm[np.arange(n), k] >= 0
-            out[ok, j, 0], out[ok, j, 1] = rr.ravel()[k[ok]], cc.ravel()[k[ok]]
+            d = np.hypot(rr - self.base_rc[j, 0], cc - self.base_rc[j, 1])
+            dm = np.where(m[:, j], d[None], -np.inf).reshape(n, -1)
+            far = dm.max(axis=1)
+            ok = np.isfinite(far)
+            band = (dm >= (far - TIP_BAND_PX)[:, None]) & np.isfinite(dm)
+            count = np.maximum(band.sum(axis=1), 1)
+            out[ok, j, 0] = (band * rr.ravel()).sum(axis=1)[ok] / count[ok]
+            out[ok, j, 1] = (band * cc.ravel()).sum(axis=1)[ok] / count[ok]
         return out
 
     def to_json(self) -> dict:
