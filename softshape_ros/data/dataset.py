@@ -19,6 +19,17 @@ and, where contact is known (the simulator; format version 2), the contact recor
 
 A dataset without those files (a real rig's, from bags, or one written before the record
 existed) loads with ``contact = None`` and ``meta['contact']`` saying why.
+
+and, where the robot's shape is known (the simulator; format version 3), the shape record:
+
+- ``backbone_px`` N x V x K x 2 float32 -- K backbone points per view, equally spaced in arc
+  length from base to tip, in the S x S image's pixels (x = column, y = row; pixel centres
+  at integer coordinates)
+- ``radius_px``   N x V x K float32     -- the tube's apparent radius there (px)
+- ``depth_px``    N x V x K float32     -- how much further from the camera than the base,
+  in pixels at the base's depth (focal length x (depth / base depth - 1))
+
+A dataset without them loads with ``shape = None`` and ``meta['shape']`` saying why.
 """
 
 from __future__ import annotations
@@ -33,12 +44,14 @@ from pathlib import Path
 import numpy as np
 
 FORMAT = 'softshape-dataset'
-VERSION = 2                 # 2: the optional contact record; 1 still loads
+VERSION = 3                 # 2: the optional contact record; 3: the optional shape record
 ARRAYS = ('initial', 'target', 'pressure', 'scene')
 CONTACT_ARRAYS = ('touching', 'contact_arc_m', 'contact_force_n', 'penetration_m')
 NO_CONTACT_RECORD = 'not recorded: written before datasets carried a contact record'
 NOT_GIVEN = 'not recorded by the program that wrote this dataset'
 BAG_CONTACT = 'unknown: built from recorded bags (the rig does not measure contact)'
+SHAPE_ARRAYS = ('backbone_px', 'radius_px', 'depth_px')
+NO_SHAPE_RECORD = 'not recorded: written before datasets carried a shape record'
 
 log = logging.getLogger(__name__)
 
@@ -67,6 +80,42 @@ class ContactRecord:
     @property
     def touching_share(self) -> float:
         return float(np.mean(self.touching)) if len(self) else 0.0
+
+
+@dataclass(frozen=True)
+class ShapeRecord:
+    """Per-sample robot shape in each view's image: K backbone points, radii, depths (px)."""
+
+    keypoints_px: np.ndarray    # (N, V, K, 2) float32, x = column, y = row
+    radius_px: np.ndarray       # (N, V, K) float32
+    depth_px: np.ndarray        # (N, V, K) float32, 0 at the base
+
+    def __len__(self) -> int:
+        return int(self.keypoints_px.shape[0])
+
+    def __getitem__(self, idx) -> 'ShapeRecord':
+        """Return the record of rows ``idx`` (an index array, mask or slice)."""
+        return ShapeRecord(self.keypoints_px[idx], self.radius_px[idx], self.depth_px[idx])
+
+    @property
+    def keypoints(self) -> int:
+        return int(self.keypoints_px.shape[2])
+
+
+def check_shape(keypoints_px, radius_px, depth_px, views: int, where: str = '') -> None:
+    """Raise DatasetError unless the three arrays form a valid shape record for ``views``."""
+    kp, r, z = np.asarray(keypoints_px), np.asarray(radius_px), np.asarray(depth_px)
+    at = f'{where}: ' if where else ''
+    if kp.ndim != 4 or kp.shape[1] != views or kp.shape[3] != 2 or kp.shape[2] < 2:
+        raise DatasetError(f'{at}backbone_px must be N x {views} x K x 2 (K >= 2), got '
+                           f'{kp.shape}')
+    for name, a in (('radius_px', r), ('depth_px', z)):
+        if a.shape != kp.shape[:3]:
+            raise DatasetError(f'{at}{name} has shape {a.shape}, backbone_px {kp.shape}')
+    if not (np.all(np.isfinite(kp)) and np.all(np.isfinite(r)) and np.all(np.isfinite(z))):
+        raise DatasetError(f'{at}the shape record is not finite')
+    if np.any(r <= 0):
+        raise DatasetError(f'{at}radius_px must be > 0, got {float(r.min())}')
 
 
 def check_contact(touching, arc_m, force_n, penetration_m, where: str = '') -> None:
@@ -105,6 +154,7 @@ class Dataset:
     scene: np.ndarray
     meta: dict
     contact: ContactRecord | None = None
+    shape: ShapeRecord | None = None
 
     def __len__(self) -> int:
         return int(self.pressure.shape[0])
@@ -146,12 +196,13 @@ class DatasetRows:
         return np.memmap(f, dtype=dtype, mode='r+', offset=header + start * row,
                          shape=(stop - start, *shape))
 
-    def put(self, i, initial, target, pressure, scene, contact=None) -> None:
+    def put(self, i, initial, target, pressure, scene, contact=None, shape=None) -> None:
         """
-        Store sample(s) at index or slice ``i``; checks finiteness and the contact record.
+        Store sample(s) at index or slice ``i``; checks finiteness and the records.
 
         ``contact``: (touching, arc_m, force_n, penetration_m) for those rows, required
-        when the dataset has a contact record and refused when it has none.
+        when the dataset has a contact record and refused when it has none; ``shape``:
+        (backbone_px, radius_px, depth_px) for those rows, likewise.
         """
         p = np.asarray(pressure, dtype=np.float32)
         if not np.all(np.isfinite(p)):
@@ -164,10 +215,22 @@ class DatasetRows:
         if contact is not None:
             contact = [np.atleast_1d(np.asarray(a)) for a in contact]
             check_contact(*contact, where=f'sample {i}')
+        has = 'backbone_px' in self.shapes
+        if has and shape is None:
+            raise DatasetError(f'sample {i}: this dataset records the shape; none given')
+        if shape is not None and not has:
+            raise DatasetError(f'sample {i}: this dataset has no shape record')
         start, stop = self._span(i)
+        if shape is not None:
+            views = self.shapes['backbone_px'][0][0]
+            shape = [np.asarray(a, np.float32).reshape((stop - start, *self.shapes[n][0]))
+                     for a, n in zip(shape, SHAPE_ARRAYS)]
+            check_shape(*shape, views, where=f'sample {i}')
         values = {'initial': initial, 'target': target, 'pressure': p, 'scene': scene}
         if contact is not None:
             values.update(zip(CONTACT_ARRAYS, contact))
+        if shape is not None:
+            values.update(zip(SHAPE_ARRAYS, shape))
         for name, v in values.items():
             # Unmapped, not flushed: the pages are the file's in the page cache (every
             # process sees them); msync per block would cost ~5 ms. close() syncs once.
@@ -200,12 +263,14 @@ class DatasetWriter:
     Writes go to ``<path>.partial`` and the folder is renamed into place on
     :meth:`close`, so a crash never leaves something that looks complete. ``contact``:
     whether the dataset carries the contact record (True for simulated data) or a string
-    saying why not (e.g. a real rig does not measure contact).
+    saying why not (e.g. a real rig does not measure contact). ``shape``: the number of
+    backbone points per view of the shape record (the simulator), or a string saying why
+    there is none.
     """
 
     def __init__(self, path, n: int, views: list[str], channels: int, size: int,
                  max_pressure_pa, meta: dict | None = None, overwrite: bool = False,
-                 contact: bool | str = NOT_GIVEN):
+                 contact: bool | str = NOT_GIVEN, shape: int | str = NOT_GIVEN):
         if n < 0:
             raise DatasetError(f'dataset size must be >= 0, got {n}')
         if channels not in (1, 3):
@@ -214,6 +279,10 @@ class DatasetWriter:
             raise DatasetError(f'max_pressure_pa needs 6 values, got {len(max_pressure_pa)}')
         if contact is False or (isinstance(contact, str) and not contact.strip()):
             raise DatasetError('a dataset without a contact record must say why (a string)')
+        if isinstance(shape, bool) or not (isinstance(shape, str) and shape.strip()
+                                           or isinstance(shape, int) and shape >= 2):
+            raise DatasetError('shape must be the keypoints per view (>= 2) or say why there '
+                               f'is no shape record (a string), got {shape!r}')
         self.path = Path(path)
         if self.path.exists() and not overwrite:
             raise DatasetError(f'{self.path}: already exists (pass overwrite)')
@@ -228,6 +297,10 @@ class DatasetWriter:
         if contact is True:
             shapes.update(touching=((), 'bool'), contact_arc_m=((), 'float32'),
                           contact_force_n=((), 'float32'), penetration_m=((), 'float32'))
+        if isinstance(shape, int):
+            shapes.update(backbone_px=((len(views), shape, 2), 'float32'),
+                          radius_px=((len(views), shape), 'float32'),
+                          depth_px=((len(views), shape), 'float32'))
         for name, (shape, dtype) in shapes.items():
             # Header and size only: rows are mapped when written (DatasetRows.put).
             mm = np.lib.format.open_memmap(self.tmp / f'{name}.npy', 'w+', dtype, (n, *shape))
@@ -240,11 +313,22 @@ class DatasetWriter:
                          max_pressure_pa=[float(v) for v in max_pressure_pa])
         if contact is not True:
             self.meta['contact'] = {'recorded': False, 'why': contact}
+        if isinstance(shape, int):
+            self.meta['shape'] = {
+                'recorded': True, 'keypoints': shape, 'arrays': list(SHAPE_ARRAYS),
+                'definition': 'backbone_px: per view, K backbone points equally spaced in '
+                              'arc length from base to tip, projected into the image (x = '
+                              'column, y = row, pixel centres at integers); radius_px: the '
+                              "tube's apparent radius there (focal length x radius / depth); "
+                              'depth_px: how much further from the camera than the base, in '
+                              "pixels at the base's depth"}
+        else:
+            self.meta['shape'] = {'recorded': False, 'why': shape}
         self.overwrite = overwrite
 
-    def put(self, i, initial, target, pressure, scene, contact=None) -> None:
+    def put(self, i, initial, target, pressure, scene, contact=None, shape=None) -> None:
         """Store sample(s) at index or slice ``i`` (see :meth:`DatasetRows.put`)."""
-        self.rows.put(i, initial, target, pressure, scene, contact)
+        self.rows.put(i, initial, target, pressure, scene, contact, shape)
 
     def abort(self) -> None:
         """Remove the partial folder (a failed write leaves nothing behind)."""
@@ -283,11 +367,12 @@ class DatasetWriter:
 
 def write_dataset(path, initial, target, pressure, scene, max_pressure_pa, views,
                   meta: dict | None = None, overwrite: bool = False,
-                  contact=None) -> Dataset:
+                  contact=None, shape=None) -> Dataset:
     """
     Write whole in-memory arrays as a dataset (convenience over DatasetWriter).
 
-    ``contact``: a :class:`ContactRecord` (or 4-tuple of arrays), or None for no record.
+    ``contact``: a :class:`ContactRecord` (or 4-tuple of arrays), or None for no record;
+    ``shape``: a :class:`ShapeRecord` (or (backbone_px, radius_px, depth_px)), or None.
     """
     initial = np.asarray(initial)
     if initial.ndim != 5:
@@ -295,10 +380,13 @@ def write_dataset(path, initial, target, pressure, scene, max_pressure_pa, views
     n, v, c, s, _ = initial.shape
     if isinstance(contact, ContactRecord):
         contact = (contact.touching, contact.arc_m, contact.force_n, contact.penetration_m)
+    if isinstance(shape, ShapeRecord):
+        shape = (shape.keypoints_px, shape.radius_px, shape.depth_px)
     w = DatasetWriter(path, n, views, c, s, max_pressure_pa, meta, overwrite,
-                      contact=True if contact is not None else NOT_GIVEN)
+                      contact=True if contact is not None else NOT_GIVEN,
+                      shape=np.asarray(shape[0]).shape[2] if shape is not None else NOT_GIVEN)
     if n:
-        w.put(slice(None), initial, target, pressure, scene, contact)
+        w.put(slice(None), initial, target, pressure, scene, contact, shape)
     return w.close()
 
 
@@ -328,12 +416,39 @@ def _load_contact(p: Path, meta: dict, n: int) -> ContactRecord | None:
                          arrays['contact_force_n'], arrays['penetration_m'])
 
 
+def _load_shape(p: Path, meta: dict, n: int, views: int) -> ShapeRecord | None:
+    present = [name for name in SHAPE_ARRAYS if (p / f'{name}.npy').exists()]
+    if not present:
+        if 'shape' not in meta:
+            meta['shape'] = {'recorded': False, 'why': NO_SHAPE_RECORD}
+        return None
+    if len(present) != len(SHAPE_ARRAYS):
+        missing = sorted(set(SHAPE_ARRAYS) - set(present))
+        raise DatasetError(f'{p}: shape record incomplete, missing {", ".join(missing)}')
+    arrays = {}
+    for name in SHAPE_ARRAYS:
+        f = p / f'{name}.npy'
+        try:
+            arrays[name] = np.load(f, mmap_mode='r', allow_pickle=False)
+        except (OSError, ValueError) as exc:
+            raise DatasetError(f'{f}: cannot read: {exc}') from None
+        if arrays[name].dtype != np.float32 or arrays[name].shape[:2] != (n, views):
+            raise DatasetError(f'{f}: {arrays[name].dtype} {arrays[name].shape}, expected '
+                               f'float32 ({n}, {views}, ...)')
+    kp, r, z = arrays['backbone_px'], arrays['radius_px'], arrays['depth_px']
+    # Checked in blocks: a large record is not read into memory at once.
+    for i in range(0, max(n, 1), 4096):
+        check_shape(kp[i:i + 4096], r[i:i + 4096], z[i:i + 4096], views, where=str(p))
+    return ShapeRecord(kp, r, z)
+
+
 def load_dataset(path) -> Dataset:
     """
     Open a dataset folder; arrays are memory-mapped read-only and cross-checked.
 
     ``ds.contact`` is the :class:`ContactRecord`, or None where the dataset has none
-    (``ds.meta['contact']['why']`` says why).
+    (``ds.meta['contact']['why']`` says why); ``ds.shape`` the :class:`ShapeRecord`, or
+    None likewise (``ds.meta['shape']['why']``).
     """
     p = Path(path)
     if not p.is_dir():
@@ -365,4 +480,5 @@ def load_dataset(path) -> Dataset:
         if arrays[name].shape != shape:
             raise DatasetError(f'{p}/{name}.npy: shape {arrays[name].shape}, expected {shape}')
     contact = _load_contact(p, meta, n)
-    return Dataset(path=p, meta=meta, contact=contact, **arrays)
+    shape = _load_shape(p, meta, n, v)
+    return Dataset(path=p, meta=meta, contact=contact, shape=shape, **arrays)

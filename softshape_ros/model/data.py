@@ -62,6 +62,25 @@ def to_tensors(ds, idx, max_pressure_pa, as_uint8: bool = False):
     return initial, target, torch.from_numpy(p)
 
 
+def shape_tensors(ds, idx):
+    """
+    Return rows ``idx`` (sorted, as :func:`to_tensors`) of the shape record, or (None, None).
+
+    (keypoints N x V x K x 4 float: x, y, radius, depth in px; free N bool: the sample
+    touches nothing, or None where the dataset has no contact record).
+    """
+    shape = getattr(ds, 'shape', None)
+    if shape is None:
+        return None, None
+    idx = np.sort(np.asarray(idx, dtype=np.int64))
+    kp = np.concatenate([np.asarray(shape.keypoints_px[idx]),
+                         np.asarray(shape.radius_px[idx])[..., None],
+                         np.asarray(shape.depth_px[idx])[..., None]], -1)
+    flags = touching_flags(ds, idx)
+    free = None if flags is None else torch.from_numpy(~np.asarray(flags))
+    return torch.from_numpy(kp.astype(np.float32)), free
+
+
 def touching_flags(ds, idx=None):
     """
     Return the rows' touching flags (N bool) from the dataset's contact record, or None.

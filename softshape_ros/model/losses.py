@@ -16,10 +16,12 @@ copy baseline. So ``ours`` keeps MSE and adds the silhouette term.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 import torch.nn.functional as F
 
-LOSSES = ('mse', 'mse_silhouette', 'huber', 'huber_silhouette')
+LOSSES = ('mse', 'mse_silhouette', 'huber', 'huber_silhouette', 'tube', 'keypoints')
 HUBER_EDGE = 0.02       # [0, 1] units: quadratic below, linear above (5/255)
 SOFT_EDGE = 0.02       # sigmoid temperature of the soft robot mask, [0, 1] units (5/255)
 LUMA = (0.299, 0.587, 0.114)
@@ -61,3 +63,69 @@ class ImageLoss:
             robot = (luminance(target, self.channels) <= self.threshold).to(pred.dtype)
             loss = loss + self.weight * F.binary_cross_entropy_with_logits(logit, robot)
         return loss
+
+
+@dataclass(frozen=True)
+class TubeWeights:
+    """Weights of the tube model's loss terms (keypoints in px, images in [0, 1] units)."""
+
+    keypoints: float = 1.0      # L1 of x, y, radius (and depth x ``depth``) vs the record
+    depth: float = 0.1
+    free: float = 0.5           # L1 of the free-shape head on samples that touch nothing
+    image: float = 20.0         # L1 of the composite from the predicted keypoints
+    teacher: float = 20.0       # ... and from the true ones (background, visibility, shade)
+    background: float = 20.0    # L1 of the background where the true robot is not
+
+
+class TubeLoss:
+    """
+    The tube model's objective; ``__call__(model, x, p, t, truth, free) -> (loss, image)``.
+
+    ``truth``: B x V x K x 4 keypoints of the shape record, or None (recorded bags: the image
+    term alone); ``free``: B bool, the samples touching nothing (None: unknown).
+    ``keypoints_only``: the keypoint terms alone, nothing drawn (a fast first phase; the
+    image is then None).
+    """
+
+    def __init__(self, weights: TubeWeights = TubeWeights(), keypoints_only: bool = False):
+        self.w, self.keypoints_only = weights, keypoints_only
+
+    def _keypoints(self, kp, free_kp, truth, free, dtype):
+        w = self.w
+        ch = torch.tensor([1.0, 1.0, 1.0, w.depth], dtype=dtype)
+        loss = w.keypoints * ((kp - truth).abs() * ch).mean()
+        if free is not None and bool(free.any()):
+            loss = loss + w.free * ((free_kp[free] - truth[free]).abs() * ch).mean()
+        return loss
+
+    def __call__(self, model, x, p, t, truth=None, free=None):
+        w = self.w
+        if self.keypoints_only:
+            if truth is None:
+                raise ValueError('keypoint training needs a dataset with a shape record')
+            kp, free_kp = model(x, p, parts='keypoints')
+            return self._keypoints(kp, free_kp, truth, free, x.dtype), None
+        out = model(x, p, truth, parts=True)
+        loss = w.image * F.l1_loss(out.image, t)
+        if truth is None:
+            return loss, out.image
+        loss = loss + self._keypoints(out.keypoints, out.free_keypoints, truth, free, x.dtype)
+        loss = loss + w.teacher * F.l1_loss(out.teacher, t)
+        # Where the true robot is not (one pixel clear of it) the target is the background.
+        b, v, s, _ = out.teacher_coverage.shape
+        clear = F.max_pool2d(out.teacher_coverage, 3, 1, 1) == 0            # B x V x S x S
+        m = clear[:, :, None].expand(b, v, t.shape[1] // v, s, s).reshape(t.shape)
+        err = (out.background - t).abs()
+        loss = loss + w.background * (err * m).sum() / m.sum().clamp_min(1)
+        return loss, out.image
+
+
+class PixelLoss:
+    """An :class:`ImageLoss` as an objective: ``__call__(model, x, p, t, ...) -> (loss, y)``."""
+
+    def __init__(self, loss: ImageLoss):
+        self.loss = loss
+
+    def __call__(self, model, x, p, t, truth=None, free=None):
+        y = model(x, p)
+        return self.loss(y, t), y

@@ -1,10 +1,14 @@
 """
-The two forward models: the paper's encoder-decoder (the baseline) and ours.
+The forward models: the paper's encoder-decoder (the baseline), ours, and a pixel U-Net.
 
-Both map (initial images, normalised pressures) to the images at the actuation, in [0, 1]
+All map (initial images, normalised pressures) to the images at the actuation, in [0, 1]
 units: input ``image`` is B x (V*C) x 64 x 64 float, ``pressure`` is B x 6 (Pa / max Pa),
 output is B x (V*C) x 64 x 64. Views are stacked as channels (mono V=1, stereo V=2).
 Shapes in the comments: B batch, V views, C channels per view, S = 64 pixels.
+
+``ours`` (:class:`~softshape_ros.model.tube_net.TubeNet`) moves the robot: keypoints of its
+backbone drawn as a tube over the scene. ``unet`` regresses pixels (a FiLM U-Net, the
+previous ``ours``), kept as the design study's baseline of that approach.
 """
 
 from __future__ import annotations
@@ -12,20 +16,12 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from softshape_ros.model.layers import Stage, coordinate_planes, down_conv, up_conv
+from softshape_ros.model.tube_net import TubeNet
+
 N_PRESSURES = 6
-ARCHS = ('paper', 'ours')
+ARCHS = ('paper', 'ours', 'unet')
 OUTPUTS = ('composite', 'residual')
-
-
-def down_conv(cin: int, cout: int) -> nn.Conv2d:
-    """Return a stride-2 4x4 convolution: halves the image side."""
-    return nn.Conv2d(in_channels=cin, out_channels=cout, kernel_size=4, stride=2, padding=1)
-
-
-def up_conv(cin: int, cout: int) -> nn.ConvTranspose2d:
-    """Return a stride-2 4x4 transposed convolution: doubles the image side."""
-    return nn.ConvTranspose2d(in_channels=cin, out_channels=cout, kernel_size=4, stride=2,
-                              padding=1)
 
 
 class PaperNet(nn.Module):
@@ -58,26 +54,7 @@ class PaperNet(nn.Module):
         return self.head(self.decoder(z))                           # B x VC x S x S
 
 
-class Stage(nn.Module):
-    """Conv -> FiLM (per-channel scale and shift from the actuation) -> ReLU."""
-
-    def __init__(self, conv: nn.Module, channels: int):
-        super().__init__()
-        self.conv, self.channels = conv, channels
-
-    def forward(self, x, gamma, beta):
-        return torch.relu(self.conv(x) * (1 + gamma) + beta)
-
-
-def coordinate_planes(b: int, h: int, w: int, like: torch.Tensor) -> torch.Tensor:
-    """Return B x 2 x H x W planes of x and y in [-1, 1] (CoordConv)."""
-    kw = {'dtype': like.dtype, 'device': like.device}
-    ys = torch.linspace(-1.0, 1.0, h, **kw).view(1, 1, h, 1).expand(b, 1, h, w)
-    xs = torch.linspace(-1.0, 1.0, w, **kw).view(1, 1, 1, w).expand(b, 1, h, w)
-    return torch.cat([xs, ys], 1)
-
-
-class OursNet(nn.Module):
+class PixelUNet(nn.Module):
     """
     U-Net with FiLM conditioning at every stage, drawing only what the actuation changes.
 
@@ -178,9 +155,11 @@ class OursNet(nn.Module):
 
 
 def build_network(arch: str, views: int, channels: int, **params) -> nn.Module:
-    """Construct ``arch`` ('paper' or 'ours') for ``views`` x ``channels`` images."""
+    """Construct ``arch`` (one of ``ARCHS``) for ``views`` x ``channels`` images."""
     if arch == 'paper':
         return PaperNet(views * channels, **params)
     if arch == 'ours':
-        return OursNet(views, channels, **params)
+        return TubeNet(views, channels, **params)
+    if arch == 'unet':
+        return PixelUNet(views, channels, **params)
     raise ValueError(f'unknown architecture {arch!r} (choose from {", ".join(ARCHS)})')

@@ -25,25 +25,27 @@ from tqdm import tqdm
 
 from softshape_ros.data import load_dataset
 from softshape_ros.model import data as model_data
-from softshape_ros.model import losses, networks
+from softshape_ros.model import layers, losses, networks, tube_net, tube_render
 from softshape_ros.model.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-from softshape_ros.model.data import split_indices, to_float, to_tensors
-from softshape_ros.model.losses import ImageLoss
+from softshape_ros.model.data import shape_tensors, split_indices, to_float, to_tensors
+from softshape_ros.model.losses import ImageLoss, PixelLoss, TubeLoss
 from softshape_ros.model.metrics import RobotSilhouette
 from softshape_ros.model.networks import build_network
+from softshape_ros.model.tube_net import TubeNet, rest_template
 
 
-# Adam learning rates, each network's best of three on the simulated 1000-sample stereo set
-# at 300 steps (docs/model.md, "Design study"), so the comparison is fair.
-DEFAULT_LR = {'paper': 1e-3, 'ours': 4e-3}
-# The paper trains on MSE; so does ours: the silhouette term and Huber lost at a fixed
-# budget (docs/model.md, design study), and remain options (``--loss``).
-DEFAULT_LOSS = {'paper': 'mse', 'ours': 'mse'}
+# Adam learning rates, each network's best on the simulated stereo sets of the design
+# studies (docs/model.md), so the comparison is fair.
+DEFAULT_LR = {'paper': 1e-3, 'ours': 2e-3, 'unet': 4e-3}
+# The paper trains on MSE; so does the pixel U-Net (the silhouette term and Huber lost at
+# a fixed budget, docs/model.md); ours on keypoints and images (losses.TubeLoss).
+DEFAULT_LOSS = {'paper': 'mse', 'ours': 'tube', 'unet': 'mse'}
 
 
 def code_stamp() -> str:
     """Hash of the network, data and training code: results of other code are never reused."""
-    files = (networks.__file__, model_data.__file__, losses.__file__, __file__)
+    files = (networks.__file__, layers.__file__, tube_net.__file__, tube_render.__file__,
+             model_data.__file__, losses.__file__, __file__)
     return hashlib.sha256(b''.join(Path(f).read_bytes() for f in files)).hexdigest()[:12]
 
 
@@ -88,6 +90,8 @@ class Rows:
     val_idx: np.ndarray
     train: tuple            # (initial uint8, target uint8, pressure float) N x VC x S x S
     val: tuple
+    train_shape: tuple = (None, None)   # (keypoints N x V x K x 4, free N bool) or None
+    val_shape: tuple = (None, None)
 
 
 def _dist():
@@ -141,11 +145,17 @@ def _train(dataset, config, out, indices, progress, desc, rank, world) -> TrainR
     if config.batch_size < world:
         raise ValueError(f'batch size {config.batch_size} < {world} processes')
     rows = _rows(ds, config, indices, rank, world)
-    net, arch_params, init_from = _network(ds, config)
     sil = RobotSilhouette.fit(rows.train[0][:2000].numpy().reshape(
         -1, len(ds.views), ds.channels, *rows.train[0].shape[-2:]))
+    net, arch_params, init_from = _network(ds, config, rows, sil)
     loss_kind = config.loss or DEFAULT_LOSS.get(config.arch, 'mse')
-    objective = ImageLoss(loss_kind, ds.channels, sil.threshold / 255, config.silhouette_weight)
+    if loss_kind in ('tube', 'keypoints'):
+        if not isinstance(net, TubeNet):
+            raise ValueError(f'the {loss_kind} loss trains ours, not {config.arch!r}')
+        objective = TubeLoss(keypoints_only=loss_kind == 'keypoints')
+    else:
+        objective = PixelLoss(ImageLoss(loss_kind, ds.channels, sil.threshold / 255,
+                                        config.silhouette_weight))
     lr = _learning_rate(config)
     fit = _fit(net, rows, objective, config, lr, rank, world, progress, desc)
     net.load_state_dict(fit['best_state'])
@@ -165,7 +175,8 @@ def _train(dataset, config, out, indices, progress, desc, rank, world) -> TrainR
                     'train': int(len(rows.train_idx)), 'val': int(len(rows.val_idx)),
                     'val_rows': [int(i) for i in rows.val_idx],
                     'provenance': ds.meta.get('provenance'),
-                    'touching_share': ds.meta.get('touching_share')},
+                    'touching_share': ds.meta.get('touching_share'),
+                    'shape_record': getattr(ds, 'shape', None) is not None},
         'training': dict(asdict(config), lr=lr, loss=loss_kind, world_size=world,
                          steps=fit['steps'], best_val_mse=fit['best_mse'],
                          best_val_loss=fit['best_loss'], copy_val_mse=fit['copy_mse'],
@@ -189,16 +200,26 @@ def _rows(ds, config, indices, rank, world) -> Rows:
     maxp = ds.max_pressure_pa
     val = to_tensors(ds, va_idx, maxp, as_uint8=True)
     vs = slice(rank * len(va_idx) // world, (rank + 1) * len(va_idx) // world)
+    val_shape = tuple(None if t is None else t[vs] for t in shape_tensors(ds, va_idx))
     return Rows(tr_idx, va_idx, to_tensors(ds, tr_idx, maxp, as_uint8=True),
-                tuple(t[vs] for t in val))
+                tuple(t[vs] for t in val), shape_tensors(ds, tr_idx), val_shape)
 
 
-def _network(ds, config):
+def _network(ds, config, rows, sil):
     """Return (network, its arch_params, the checkpoint it starts from or None)."""
     torch.manual_seed(config.seed)
     if config.init is None:
         params = dict(config.arch_params)
-        return build_network(config.arch, len(ds.views), ds.channels, **params), params, None
+        truth = rows.train_shape[0]
+        if config.arch == 'ours' and truth is not None:
+            params.setdefault('keypoints', int(truth.shape[2]))
+        net = build_network(config.arch, len(ds.views), ds.channels, **params)
+        if isinstance(net, TubeNet):
+            # The heads start from the mean shape of the record, else the resting robot.
+            with torch.no_grad():
+                net.set_template(truth.mean(0) if truth is not None else rest_template(
+                    rows.train[0][:256].numpy(), sil, len(ds.views), net.keypoints.k))
+        return net, params, None
     net, cfg = load_checkpoint(config.init)
     want = {'arch': config.arch, 'views': ds.views, 'channels': ds.channels,
             'image_size': int(ds.meta.get('image_size', 64)),
@@ -222,16 +243,21 @@ def _learning_rate(config) -> float:
     return lr
 
 
-def _validate(net, val, objective, chunk=256):
+def _take(extra, idx):
+    """Rows ``idx`` of the optional (keypoints, free) tensors."""
+    return tuple(None if t is None else t[idx] for t in extra)
+
+
+def _validate(net, val, extra, objective, chunk=256):
     """Return (sum of squared errors, sum of per-chunk losses x rows) over the val slice."""
     x8, t8, p = val
     sse = loss = 0.0
     with torch.no_grad():
         for i in range(0, len(x8), chunk):
             x, t = to_float(x8[i:i + chunk]), to_float(t8[i:i + chunk])
-            y = net(x, p[i:i + chunk])
-            sse += float(((y - t) ** 2).sum())
-            loss += float(objective(y, t)) * len(x)
+            lo, y = objective(net, x, p[i:i + chunk], t, *_take(extra, slice(i, i + chunk)))
+            sse += float(((y - t) ** 2).sum()) if y is not None else math.nan
+            loss += float(lo) * len(x)
     return sse, loss
 
 
@@ -251,7 +277,7 @@ def _fit(net, rows, objective, config, lr, rank, world, progress, desc) -> dict:
     best, best_mse, best_state, bad, step, history = math.inf, math.inf, None, 0, 0, []
     if config.init is not None:     # fine-tuning never ends worse than where it started
         net.eval()
-        sse, vloss = _all_sum(world, *(_validate(net, rows.val, objective)
+        sse, vloss = _all_sum(world, *(_validate(net, rows.val, rows.val_shape, objective)
                                        if len(xv) else (0.0, 0.0)))
         best, best_mse = vloss / n_val, sse / n_pix
         best_state = copy.deepcopy(net.state_dict())
@@ -263,7 +289,8 @@ def _fit(net, rows, objective, config, lr, rank, world, progress, desc) -> dict:
         for gb in _batches(len(xt), config.batch_size, world, gen):
             b = gb[rank * len(gb) // world:(rank + 1) * len(gb) // world]
             net.train()
-            loss = objective(model(to_float(xt[b]), pt[b]), to_float(tt[b]))
+            loss, _ = objective(model, to_float(xt[b]), pt[b], to_float(tt[b]),
+                                *_take(rows.train_shape, b))
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
@@ -274,7 +301,7 @@ def _fit(net, rows, objective, config, lr, rank, world, progress, desc) -> dict:
             if step % config.eval_every and step < config.max_steps:
                 continue
             net.eval()
-            sse, vloss = _all_sum(world, *(_validate(net, rows.val, objective)
+            sse, vloss = _all_sum(world, *(_validate(net, rows.val, rows.val_shape, objective)
                                            if len(xv) else (0.0, 0.0)))
             val, vloss = sse / n_pix, vloss / n_val
             (tl,) = _all_sum(world, run_loss / run_n)

@@ -41,6 +41,7 @@ CHUNK = 50                  # samples per work item (a scene with more is split)
 MAX_RETRIES = 5             # a failed solve is redrawn (counted) this often at most
 ARC_STEP_M = 1e-4           # backbone sampling of the contact arc length
 CONTACT_GAP_M = 1e-4        # in contact: the tube's surface within this of the object
+SHAPE_KEYPOINTS = 16        # backbone points per view in the shape record
 _THREAD_VARS = ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS')
 
 
@@ -284,6 +285,35 @@ def measure_contact(state, obstacles, step: float = ARC_STEP_M,
     return ContactSample(True, arc, force, float(state.max_penetration_m))
 
 
+# -- the shape record of one equilibrium ---------------------------------------------------
+def measure_shape(state, cameras, size: int, k: int = SHAPE_KEYPOINTS):
+    """
+    Return the robot in each camera's input image: points (V, k, 2), radii, depths (V, k).
+
+    ``k`` points equally spaced in arc length from base to tip, projected through each
+    :class:`~softshape_ros.sim.camera.PinholeCamera` and mapped from its crop to the
+    ``size`` x ``size`` image exactly as ``render_inputs`` samples it (pixel centres at
+    integer coordinates; x = column, y = row). Radius: the tube's apparent radius, focal
+    length x radius / depth. Depth: how much further from the camera than the base, in the
+    same pixels at the base's depth (focal length x (depth / base depth - 1)).
+    """
+    s = np.asarray(state.s_m, dtype=float)
+    sk = np.linspace(s[0], s[-1], k)
+    pts = np.column_stack([np.interp(sk, s, state.backbone_m[:, i]) for i in range(3)])
+    rad = np.interp(sk, s, state.radii_m)
+    kp, radius, depth = np.empty((len(cameras), k, 2)), np.empty((len(cameras), k)), \
+        np.empty((len(cameras), k))
+    for v, cam in enumerate(cameras):
+        x0, y0, w, h = cam.crop
+        uvz = cam.project(pts)
+        f = 0.5 * (cam.fx * size / w + cam.fy * size / h)
+        kp[v, :, 0] = (uvz[:, 0] - x0 + 0.5) * size / w - 0.5
+        kp[v, :, 1] = (uvz[:, 1] - y0 + 0.5) * size / h - 0.5
+        radius[v] = f * rad / uvz[:, 2]
+        depth[v] = f * (uvz[:, 2] / uvz[0, 2] - 1.0)
+    return kp.astype(np.float32), radius.astype(np.float32), depth.astype(np.float32)
+
+
 # -- worker side ------------------------------------------------------------------------
 _WORKER = {}
 
@@ -335,6 +365,10 @@ def simulate_chunk(job):
     target = np.empty((n, *initial.shape), np.uint8)
     pressure = np.empty((n, 6), np.float32)
     record = np.zeros((4, n))
+    cams = [rig.cameras[v] for v in views]
+    keypoints = np.empty((n, len(views), SHAPE_KEYPOINTS, 2), np.float32)
+    radii = np.empty((n, len(views), SHAPE_KEYPOINTS), np.float32)
+    depths = np.empty((n, len(views), SHAPE_KEYPOINTS), np.float32)
     stats = {'replaced': 0, 'iterations': np.empty(n, np.int32), 'failed': []}
     for k, p in enumerate(pressures):
         c0 = cpu()
@@ -357,6 +391,7 @@ def simulate_chunk(job):
         pressure[k] = st.pressures_pa
         c = measure_contact(st, rig.obstacles)
         record[:, k] = (c.touching, c.arc_m, c.force_n, c.penetration_m)
+        keypoints[k], radii[k], depths[k] = measure_shape(st, cams, w['size'])
         stats['iterations'][k] = st.iterations
         c3 = cpu()
         spent['solve'] += c1 - c0
@@ -365,7 +400,8 @@ def simulate_chunk(job):
     contact = (record[0].astype(bool), record[1].astype(np.float32),
                record[2].astype(np.float32), record[3].astype(np.float32))
     c0 = cpu()
-    w['rows'].put(slice(chunk.start, chunk.stop), initial, target, pressure, scene.id, contact)
+    w['rows'].put(slice(chunk.start, chunk.stop), initial, target, pressure, scene.id, contact,
+                  (keypoints, radii, depths))
     spent['write'] += cpu() - c0
     stats['touching'] = int(contact[0].sum())
     stats['max_penetration_m'] = float(record[3].max())
@@ -440,7 +476,7 @@ def generate(cfg: RigConfig, plan: Plan, out, views, size: int = 64, gray: bool 
     n = len(plan.pressures)
     channels = 1 if gray else 3
     writer = DatasetWriter(out, n, list(views), channels, size, cfg.max_pressures_pa,
-                           overwrite=overwrite, contact=True)
+                           overwrite=overwrite, contact=True, shape=SHAPE_KEYPOINTS)
     jobs = [(c, plan.scenes[c.scene_index], plan.pressures[c.start:c.stop], plan.seed)
             for c in plan.chunks(chunk)]
     workers = max(1, min(len(jobs), workers or os.cpu_count() or 1))

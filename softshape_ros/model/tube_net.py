@@ -1,0 +1,294 @@
+"""
+``ours``: a forward model that moves the robot instead of redrawing pixels.
+
+Per view it predicts K keypoints of the robot's backbone (x, y, radius, depth in px), draws
+the tube they describe with :mod:`~softshape_ros.model.tube_render` (sharp by
+construction: a 1-pixel anti-aliased edge wherever the keypoints put it), and composes it
+over the scene with the robot removed, hidden where the object stands in front of it::
+
+    out = a v shade + (1 - a v) background
+
+- **Keypoints** (:class:`KeypointNet`): an MLP of the pressures gives the free shape
+  (offsets from a template, the dataset's mean shape); a CNN over the rest images, that
+  free shape drawn in (coverage at 16x16), coordinate planes and FiLM of the pressures at
+  every stage corrects it where the object is in the way.
+- **Background** (:class:`BackgroundNet`): the rest image outside the resting robot's
+  tube (the free shape at zero pressure), a small U-Net's fill inside it. It depends only
+  on the scene, so inference computes it once per scene (``cache``).
+- **Visibility**: a small FiLM CNN over the rest images, the drawn coverage and depth: where
+  the object is in front of the robot, the object's pixels stay.
+
+Trained on the simulator's shape record (``ds.shape``) with keypoint L1 in px, plus an L1
+image loss of the composite (with the predicted keypoints, and with the true ones so the
+background, visibility and shading learn from exact shapes) and a masked L1 of the
+background where the true robot is not; on recorded bags (no shape record) with the image
+loss alone: the renderer is differentiable.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from softshape_ros.model.layers import Stage, coordinate_planes, down_conv, up_conv
+from softshape_ros.model.tube_render import R, TubeField, TubeShader, coverage, tube_field
+
+N_PRESSURES = 6
+KEYPOINTS = 16
+# Output scale of the keypoint heads per channel (x, y, radius, depth; px): the MLPs work
+# in units of about one.
+KEYPOINT_SCALE = (8.0, 8.0, 0.5, 8.0)
+FREE_COVERAGE_SIZE = 16
+
+
+class TubeOutput(NamedTuple):
+    """Everything one forward pass makes (images B x V*C x S x S, keypoints B x V x K x 4)."""
+
+    image: torch.Tensor
+    keypoints: torch.Tensor
+    free_keypoints: torch.Tensor
+    background: torch.Tensor
+    alpha: torch.Tensor             # B x V x S x S: coverage x visibility
+    teacher: torch.Tensor | None    # the composite drawn from the true keypoints, if given
+    teacher_coverage: torch.Tensor | None   # B x V x S x S: the true keypoints' tube
+
+
+def mlp(cin: int, hidden: int, cout: int, zero_last: bool = True) -> nn.Sequential:
+    """Return Linear-ReLU-Linear-ReLU-Linear; the last layer zero-initialised by default."""
+    net = nn.Sequential(nn.Linear(cin, hidden), nn.ReLU(), nn.Linear(hidden, hidden),
+                        nn.ReLU(), nn.Linear(hidden, cout))
+    if zero_last:
+        nn.init.zeros_(net[-1].weight)
+        nn.init.zeros_(net[-1].bias)
+    return net
+
+
+class FiLMEncoder(nn.Module):
+    """Strided FiLM stages down to S/16; returns the flattened last map (B x w S^2/256)."""
+
+    def __init__(self, cin: int, widths, cond: int):
+        super().__init__()
+        self.stages = nn.ModuleList()
+        for w in widths:
+            self.stages.append(Stage(down_conv(cin, w), w))
+            cin = w
+        self.split = [2 * st.channels for st in self.stages]
+        self.film = nn.Linear(cond, sum(self.split))
+        nn.init.zeros_(self.film.weight)
+        nn.init.zeros_(self.film.bias)
+
+    def forward(self, x: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
+        films = self.film(cond)[:, :, None, None].split(self.split, 1)
+        for stage, f in zip(self.stages, films):
+            x = stage(x, *f.chunk(2, 1))                            # B x w x s/2 x s/2
+        return x.flatten(1)
+
+
+class KeypointNet(nn.Module):
+    """Pressures (and the rest images) -> B x V x K x 4 keypoints: free shape + correction."""
+
+    def __init__(self, views: int, channels: int, keypoints: int, size: int,
+                 widths=(16, 32, 64, 64), cond: int = 64, hidden: int = 256):
+        super().__init__()
+        self.views, self.k = views, keypoints
+        out = views * keypoints * 4
+        self.register_buffer('template', torch.zeros(views, keypoints, 4))
+        self.register_buffer('scale', torch.tensor(KEYPOINT_SCALE))
+        self.register_buffer('centre_shift', torch.tensor([1.0, 1.0, 0.0, 0.0]))
+        self.free = mlp(N_PRESSURES, 128, out)
+        self.cond = nn.Sequential(nn.Linear(N_PRESSURES, cond), nn.ReLU(),
+                                  nn.Linear(cond, cond), nn.ReLU())
+        self.encoder = FiLMEncoder(views * channels + views + 2, widths, cond)
+        feat = widths[-1] * (size // 2 ** len(widths)) ** 2
+        self.correct = mlp(feat + cond, hidden, out)
+
+    def rest(self) -> torch.Tensor:
+        """Return the free shape at zero pressure (V x K x 4): the resting robot."""
+        zero = self.scale.new_zeros(1, N_PRESSURES)
+        return self.template + self.free(zero).view(self.views, self.k, 4) * self.scale
+
+    def forward(self, image: torch.Tensor, pressure: torch.Tensor):
+        """Return (keypoints, free keypoints), each B x V x K x 4, and the FiLM embedding."""
+        b = image.shape[0]
+        shape = (b, self.views, self.k, 4)
+        free = self.template + self.free(pressure).view(shape) * self.scale
+        # The free shape drawn coarsely, so the CNN sees where it meets the object.
+        s = image.shape[-1]
+        f = FREE_COVERAGE_SIZE / s                                     # pixel centres:
+        small = free.detach() * f + self.centre_shift * (0.5 * f - 0.5)   # x' = (x + .5) f - .5
+        cov = coverage(tube_field(small, FREE_COVERAGE_SIZE).sd).view(
+            b, self.views, FREE_COVERAGE_SIZE, FREE_COVERAGE_SIZE)
+        cov = F.interpolate(cov, size=(s, s), mode='nearest')         # B x V x S x S
+        cond = self.cond(pressure)
+        x = torch.cat([image, cov, coordinate_planes(b, s, s, image)], 1)
+        z = self.encoder(x, cond)                                    # B x feat
+        corr = self.correct(torch.cat([z, cond], 1)).view(shape) * self.scale
+        return free + corr, free, cond
+
+
+class BackgroundNet(nn.Module):
+    """
+    The rest image with the resting robot erased: kept outside its tube, filled inside.
+
+    The resting robot's tube (the free shape at zero pressure, widened by ``MARGIN_PX``)
+    masks the rest image; a small U-Net over the rest image and that mask fills the
+    masked pixels (what the robot hid: background, or the object behind it).
+    """
+
+    MARGIN_PX = 1.5
+
+    def __init__(self, views: int, channels: int, widths=(16, 32, 32)):
+        super().__init__()
+        self.views, self.channels = views, channels
+        self.down = nn.ModuleList()
+        c = views * channels + views + 2
+        for w in widths:
+            self.down.append(nn.Sequential(down_conv(c, w), nn.ReLU()))
+            c = w
+        self.up = nn.ModuleList()
+        for w in reversed(widths[:-1]):
+            self.up.append(nn.Sequential(up_conv(2 * c if self.up else c, w), nn.ReLU()))
+            c = w
+        self.head = up_conv(2 * c, views * channels)
+
+    def forward(self, image: torch.Tensor, rest: torch.Tensor) -> torch.Tensor:
+        """B x VC x S x S rest images + V x K x 4 rest keypoints -> the backgrounds."""
+        b, _, h, w = image.shape
+        v, c = self.views, self.channels
+        widened = rest + torch.tensor([0.0, 0.0, self.MARGIN_PX, 0.0], dtype=rest.dtype)
+        mask = coverage(tube_field(widened[None], h).sd).view(1, v, h, w).expand(b, v, h, w)
+        x = torch.cat([image, mask, coordinate_planes(b, h, w, image)], 1)
+        skips = []
+        for stage in self.down:                                      # S/2, S/4, S/8
+            x = stage(x)
+            skips.append(x)
+        skips.pop()
+        for stage in self.up:                                        # S/4, S/2
+            x = torch.cat([stage(x), skips.pop()], 1)
+        fill = torch.sigmoid(self.head(x)).view(b, v, c, h, w)      # B x V x C x S x S
+        m = mask[:, :, None]
+        return (m * fill + (1 - m) * image.view(b, v, c, h, w)).view(b, v * c, h, w)
+
+
+class VisibilityNet(nn.Module):
+    """
+    Per pixel: is the robot in front (1) or hidden by the object (0)? Logits at S x S.
+
+    A FiLM CNN at half resolution (the inputs averaged 2x2, the logits upsampled
+    bilinearly): an object's edge over the robot is as soft as the object's own.
+    """
+
+    def __init__(self, views: int, channels: int, cond: int, width: int = 16):
+        super().__init__()
+        cin = views * channels + 2 * views + 2
+        self.inp = nn.Sequential(nn.Conv2d(cin, width, 3, padding=1), nn.ReLU())
+        self.down = Stage(down_conv(width, 2 * width), 2 * width)
+        self.mid = Stage(nn.Conv2d(2 * width, 2 * width, 3, padding=2, dilation=2), 2 * width)
+        self.up = up_conv(2 * width, width)
+        self.head = nn.Conv2d(2 * width, views, 3, padding=1)
+        nn.init.zeros_(self.head.weight)
+        nn.init.constant_(self.head.bias, 4.0)          # visible everywhere at the start
+        self.split = [4 * width, 4 * width]
+        self.film = nn.Linear(cond, sum(self.split))
+        nn.init.zeros_(self.film.weight)
+        nn.init.zeros_(self.film.bias)
+
+    def forward(self, x: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
+        s = x.shape[-1]
+        f1, f2 = self.film(cond)[:, :, None, None].split(self.split, 1)
+        x0 = self.inp(F.avg_pool2d(x, 2))                            # B x w x S/2 x S/2
+        x = self.mid(self.down(x0, *f1.chunk(2, 1)), *f2.chunk(2, 1))  # B x 2w x S/4
+        logit = self.head(torch.cat([torch.relu(self.up(x)), x0], 1))  # B x V x S/2
+        return F.interpolate(logit, size=(s, s), mode='bilinear', align_corners=False)
+
+
+def rest_template(initial, silhouette, views: int, keypoints: int) -> torch.Tensor:
+    """
+    Return V x K x 4 keypoints of the resting robot read off rest images (no shape record).
+
+    Per view the robot's pixels of the typical rest image (the silhouette's threshold): a
+    straight tube from the top of its outline to the bottom, through the middle of each
+    row, as wide as its median row; depth 0.
+    """
+    import numpy as np
+    img = np.asarray(initial)
+    n, vc, s, _ = img.shape
+    mask = silhouette.mask(img.reshape(n, views, vc // views, s, s)).mean(0) > 0.5
+    out = np.zeros((views, keypoints, 4), np.float32)
+    for v in range(views):
+        rows = np.nonzero(mask[v].any(1))[0]
+        if len(rows) < 2:               # no robot seen: a vertical tube down the middle
+            rows = np.array([0, s - 1])
+        widths = mask[v][rows].sum(1)
+        r = max(1.0, 0.5 * float(np.median(widths)))
+        top, bottom = rows[0] - 0.5 + r, rows[-1] + 0.5 - r
+        ys = np.linspace(top, max(top, bottom), keypoints)
+        cols = np.arange(s)
+        centre = [(mask[v][y] * cols).sum() / max(mask[v][y].sum(), 1) if mask[v][y].any()
+                  else s / 2 - 0.5 for y in np.clip(np.rint(ys).astype(int), 0, s - 1)]
+        out[v, :, 0], out[v, :, 1], out[v, :, 2] = centre, ys, r
+    return torch.from_numpy(out)
+
+
+class TubeNet(nn.Module):
+    """The structured forward model (see the module notes); ``forward`` returns the image."""
+
+    def __init__(self, views: int, channels: int, keypoints: int = KEYPOINTS, size: int = 64,
+                 cond: int = 64):
+        super().__init__()
+        self.views, self.channels, self.size = int(views), int(channels), int(size)
+        self.keypoints = KeypointNet(views, channels, keypoints, size, cond=cond)
+        self.background = BackgroundNet(views, channels)
+        self.visibility = VisibilityNet(views, channels, cond)
+        self.shader = TubeShader(views, channels)
+        self.cache = False              # inference: keep the last scene's background
+        self._cached = None
+
+    def set_template(self, keypoints: torch.Tensor) -> None:
+        """Set the keypoint template (V x K x 4, px): the shape the heads start from."""
+        self.keypoints.template.copy_(keypoints)
+
+    def scene_background(self, image: torch.Tensor) -> torch.Tensor:
+        """Return the background of ``image``: once per scene while ``cache`` is on."""
+        if not self.cache or torch.is_grad_enabled():
+            return self.background(image, self.keypoints.rest())
+        c = self._cached
+        if c is None or c[0].shape != image.shape or not torch.equal(c[0], image):
+            c = self._cached = (image.clone(), self.background(image, self.keypoints.rest()))
+        return c[1]
+
+    def render(self, keypoints, image, background, cond):
+        """Compose the tube of ``keypoints`` over ``background``: (image, alpha, coverage)."""
+        b, v, c, s = image.shape[0], self.views, self.channels, self.size
+        field: TubeField = tube_field(keypoints, s)
+        cov = coverage(field.sd).view(b, v, s, s)
+        depth = (field.depth / keypoints[:, :, :1, R]).view(b, v, s, s)   # in radii
+        logit = self.visibility(torch.cat([image, cov, depth * cov,
+                                           coordinate_planes(b, s, s, image)], 1), cond)
+        alpha = cov * torch.sigmoid(logit)                           # B x V x S x S
+        shade = self.shader(field).view(b, v, c, s, s)
+        a = alpha[:, :, None]
+        out = a * shade + (1 - a) * background.view(b, v, c, s, s)
+        return out.view(b, v * c, s, s), alpha, cov
+
+    def forward(self, image: torch.Tensor, pressure: torch.Tensor,
+                truth: torch.Tensor | None = None, parts: bool = False):
+        """
+        B x VC x S x S images in [0, 1] + B x 6 pressures -> the predicted images.
+
+        ``parts``: return the whole :class:`TubeOutput` instead (``'keypoints'``: only the
+        keypoints and the free shape, nothing drawn); ``truth`` (B x V x K x 4, the shape
+        record) also draws the composite from the true keypoints (``teacher``).
+        """
+        kp, free, cond = self.keypoints(image, pressure)
+        if parts == 'keypoints':
+            return kp, free
+        bg = self.scene_background(image)
+        out, alpha, _ = self.render(kp, image, bg, cond)
+        if not parts:
+            return out
+        teacher, _, cov = (None,) * 3 if truth is None else self.render(truth, image, bg, cond)
+        return TubeOutput(out, kp, free, bg, alpha, teacher, cov)
