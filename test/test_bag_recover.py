@@ -24,7 +24,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from softshape_ros.data.bag_tools import bag_info, recover_bag
 from softshape_ros.data.bag_writer import BagWriter, TopicSpec
 from softshape_ros.nodes.common import numpy_to_image, ns_to_stamp
-from waits import round_trip
+from waits import call, round_trip
 
 RELIABLE = QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE)
 
@@ -191,13 +191,9 @@ def test_full_disk_keeps_node_alive_and_bag_readable(ros, tmp_path):
         assert proc.poll() is None, 'recorder died on a full disk'
         client = node.create_client(Trigger, '/recorder/split_bagfile')
         assert client.wait_for_service(timeout_sec=10)
-        # the graph may still list the service of the recorder killed before this test: a
-        # request sent before the live one matched our client is never answered, so repeat
-        calls = []
-        round_trip(ros, lambda k: calls.append(client.call_async(Trigger.Request())),
-                   lambda: any(f.done() for f in calls), 'split response', timeout=10)
-        fut = next(f for f in calls if f.done())
-        assert not fut.result().success and 'write failed' in fut.result().message
+        # the graph may still list the service of the recorder killed before this test
+        res = call(ros, client, Trigger.Request(), 'split response', timeout=10)
+        assert not res.success and 'write failed' in res.message
         proc.send_signal(signal.SIGINT)
         out, _ = proc.communicate(timeout=30)
         assert proc.returncode == 0, out

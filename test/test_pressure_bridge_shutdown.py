@@ -16,7 +16,7 @@ import pytest
 
 from softshape_ros.config import load_rig_config
 from softshape_ros.hardware.virtual_due import VirtualDue
-from waits import round_trip
+from waits import call, round_trip
 
 pytestmark = pytest.mark.ros
 CFG = load_rig_config()
@@ -51,9 +51,7 @@ def test_stopping_the_node_vents(sig, reason, ros, tmp_path):
             for tid in (Transition.TRANSITION_CONFIGURE, Transition.TRANSITION_ACTIVATE):
                 req = ChangeState.Request()
                 req.transition.id = tid
-                fut = change.call_async(req)
-                ros.wait_for(fut.done, 30, what=f'transition {tid}')
-                assert fut.result().success, out_of(proc)
+                assert call(ros, change, req, f'transition {tid}').success, out_of(proc)
             # Configured (the handshake is done by then) and active: a command is applied. Our
             # publisher's match may be with a bridge process that is gone (still in the graph):
             # the command is repeated until the Due applies it.
