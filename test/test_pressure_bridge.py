@@ -173,7 +173,8 @@ def test_tracks_commands_rejects_bad_ones_and_serves_vent(ros, vdue):
     good = [15000] * 6               # sent after the bad ones: once applied, none is in flight
     c.command(good)
     ros.wait_for(lambda: vdue.applied()[-1].setpoints_pa == tuple(good), 5, what='good command')
-    assert [a.setpoints_pa for a in vdue.applied()[n:]] == [tuple(good)]
+    after = [a.setpoints_pa for a in vdue.applied()[n:]]       # (a retransmit applies again)
+    assert after and set(after) == {tuple(good)}, after
 
     # over the limits: clamped to min(rig.yaml, parameter, firmware), and reported
     c.command([1e9] * 6)
