@@ -63,6 +63,15 @@ class Controller:
         crop = crop_for(self.cfg.cameras[view], frame.shape[1], frame.shape[0])
         return preprocess(frame, crop, s, self.gray)
 
+    def _goal_frame(self, view: str, frame: np.ndarray) -> np.ndarray:
+        """Refuse a goal image that is neither S x S nor of the camera's shape (any scale)."""
+        cam, s = self.cfg.cameras[view], self.spec.size
+        h, w = frame.shape[:2]
+        if (h, w) != (s, s) and abs(w * cam.height - h * cam.width) > 0.01 * w * cam.height:
+            raise GoalError(f'goal image of {view} is {w}x{h}: neither {s}x{s} (network '
+                            f'image) nor a {cam.width}x{cam.height} camera frame (any scale)')
+        return frame
+
     def set_initial(self, frames: dict) -> float:
         """Take the rest frames of a scene ({view: frame}); build its bank; return its ms."""
         try:
@@ -91,7 +100,8 @@ class Controller:
     def goal_from_images(self, frames: dict, contact: str = 'any') -> Goal:
         """Goal images per view: camera frames (cropped like the dataset) or S x S images."""
         try:
-            imgs = np.stack([self.prepare(v, self._frame(frames, v)) for v in self.spec.views])
+            imgs = np.stack([self.prepare(v, self._goal_frame(v, self._frame(frames, v)))
+                             for v in self.spec.views])
         except ImageError as exc:
             raise GoalError(f'goal image unusable: {exc}') from None
         return Goal.images(self.spec, imgs, contact)
@@ -101,7 +111,7 @@ class Controller:
         s = self.spec.size
         masks = []
         for v in self.spec.views:
-            m = self._frame(frames, v)
+            m = self._goal_frame(v, self._frame(frames, v))
             if m.ndim != 2:
                 raise GoalError(f'goal silhouette of {v} must be mono8 (nonzero = robot), '
                                 f'got shape {m.shape}')
@@ -156,14 +166,17 @@ class Controller:
         return np.asarray(frames[view])
 
     # -- the loop ----------------------------------------------------------------------------
-    def start(self, goal: Goal) -> ShapeLoop:
+    def start(self, goal: Goal, tolerance: Tolerance | None = None,
+              max_iterations: int | None = None) -> ShapeLoop:
         """Start a closed loop for ``goal`` in the current scene (GoalError if it does not fit)."""
         with self._lock:
             ctx, forward, bank = self.ctx, self.forward, self.bank
         if ctx is None:
             raise SceneContextError('no initial images of the scene yet')
-        return ShapeLoop(forward, ctx, goal, self.planner, bank, self.tolerance,
-                         self.max_iterations)
+        n = self.max_iterations if max_iterations is None else int(max_iterations)
+        if n < 1:
+            raise ValueError(f'max_iterations must be >= 1, got {n}')
+        return ShapeLoop(forward, ctx, goal, self.planner, bank, tolerance or self.tolerance, n)
 
     def check(self, pressures_pa) -> np.ndarray:
         """Check a plan before air moves: 6 finite values within this controller's limits."""

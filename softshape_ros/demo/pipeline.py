@@ -21,9 +21,10 @@ import numpy as np
 import yaml
 
 from softshape_ros.config import load_rig_config
+from softshape_ros.demo import control_stage
 from softshape_ros.processes import NodeProcess, which_softshape
 
-STAGES = ('record', 'dataset', 'train', 'evaluate', 'live')
+STAGES = ('record', 'dataset', 'train', 'evaluate', 'live', 'control')
 
 
 @dataclass
@@ -38,12 +39,16 @@ class DemoSettings:
     threads: int = 2
     live_scenes: int = 2
     live_commands: int = 8
+    control_goals: int = 8       # control stage (demo/control_stage.py)
+    control_live: int = 4
+    control_bank: int = 384
     seed: int = 0
 
     def stage_key(self, stage: str) -> dict:
         keys = {'record': ('scenes', 'actuations', 'rate_hz', 'seed'),
                 'dataset': (), 'train': ('max_steps', 'seed'), 'evaluate': (),
-                'live': ('live_scenes', 'live_commands', 'seed')}
+                'live': ('live_scenes', 'live_commands', 'seed'),
+                'control': control_stage.KEYS}
         upto = STAGES[:STAGES.index(stage) + 1]
         key = {k: getattr(self, k) for s in upto for k in keys[s]}
         if 'train' in upto:     # a model of older network code is retrained, not reused
@@ -261,8 +266,10 @@ def run_demo(settings: DemoSettings, fresh: bool = False) -> Path:
                       str(root / 'dataset'), '--validation', '--out', str(root / 'eval')],
                      root / 'logs' / 'evaluate.txt')
             res = json.loads((root / 'eval' / 'metrics.json').read_text())
-        else:
+        elif name == 'live':
             res = live(settings, stage, cfg, root / 'model')
+        else:
+            res = control_stage.run(settings, root, cfg, root / 'model', run_tool)
         timings[name] = round(time.monotonic() - t0, 1)
         results[name] = stage.done(dict(res, seconds=timings[name]))
     from softshape_ros.demo.report import write_report

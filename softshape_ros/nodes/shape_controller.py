@@ -270,9 +270,12 @@ class ShapeController(Node):
                            iou=None, plan_ms=None)
         if not self.core.ready:
             self.take_rest_images()
+        # Tolerances and iterations are read per goal: `ros2 param set` takes effect next goal.
+        tol = Tolerance(float(self.get_parameter('tip_tolerance_px').value),
+                        float(self.get_parameter('iou_tolerance').value))
         try:
-            loop = self.core.start(goal)
-        except (GoalError, SceneContextError) as exc:
+            loop = self.core.start(goal, tol, int(self.get_parameter('max_iterations').value))
+        except (GoalError, SceneContextError, ValueError) as exc:
             self.counts['rejected_goals'] += 1
             self.state, self.last_error = 'idle', str(exc)
             self.get_logger().error(f'goal {goal_id} refused: {exc}')
