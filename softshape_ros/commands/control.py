@@ -44,7 +44,7 @@ def register(sub) -> None:
     p.add_argument('--tip-px', type=float, default=2.0, help='tip tolerance in every view')
     p.add_argument('--iou', type=float, default=0.9, help='silhouette IoU tolerance')
     p.add_argument('--bank-size', type=int, default=384, help='predictions per scene')
-    p.add_argument('--lm-iterations', type=int, default=6, help='LM steps per plan at most')
+    p.add_argument('--lm-iterations', type=int, default=4, help='LM steps per plan at most')
     p.add_argument('--threads', type=int, default=1, help='torch threads (planning: one core)')
     p.add_argument('--quiet', action='store_true', help='no progress bars')
     p.set_defaults(func=_control_eval)

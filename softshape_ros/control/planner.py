@@ -33,7 +33,7 @@ class PlannerConfig:
 
     bank_size: int = 384
     starts: int = 1
-    lm_iterations: int = 6
+    lm_iterations: int = 4
     fd_step: float = 0.01          # of the usable limit
     lm_damping: float = 1e-2
     min_gain: float = 1e-3         # stop when an accepted step improves the cost less

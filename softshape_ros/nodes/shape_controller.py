@@ -64,7 +64,7 @@ class ShapeController(Node):
         self.on_error = par('on_error', 'hold').value
         self.hold_period = float(par('hold_period_s', 1.0).value)
         planner = PlannerConfig(bank_size=int(par('bank_size', 384).value),
-                                lm_iterations=int(par('lm_iterations', 6).value))
+                                lm_iterations=int(par('lm_iterations', 4).value))
         limits = [float(x) for x in par('max_pressure_pa', self.cfg.max_pressures_pa).value]
         image_qos = IMAGE_QOS if par('reliable_images', True).value else SENSOR_QOS
         if self.contact not in CONTACT_MODES:
