@@ -322,3 +322,13 @@ def test_tip_goal_json_and_camera_frames(trained_checkpoint):
         ctl.check([2e5] + [0.0] * 5)
     with pytest.raises(ValueError, match='non-finite'):
         ctl.check([np.nan] + [0.0] * 5)
+
+
+def test_control_eval_refuses_bad_arguments(capsys, tmp_path):
+    from softshape_ros.cli import main
+    for args, why in ((['--goals', '0'], '--goals must be >= 1'),
+                      (['--methods', 'model,magic'], '--methods: choose from'),
+                      (['--methods', 'random'], 'random search takes its budget')):
+        code = main(['control-eval', '--model', str(tmp_path / 'none'), '--out',
+                     str(tmp_path / 'out')] + args)
+        assert code == 2 and why in capsys.readouterr().err

@@ -17,9 +17,13 @@ def _control_eval(args) -> int:
     unknown = sorted(set(methods) - set(METHODS))
     if unknown or not methods:
         raise ValueError(f'--methods: choose from {",".join(METHODS)}, got {args.methods!r}')
+    if 'random' in methods and 'model' not in methods:
+        raise ValueError('--methods: random search takes its budget from the model planner: '
+                         'add "model"')
     settings = EvalSettings(
         goals=args.goals, seed=args.seed, max_iterations=args.iterations,
         tolerance=Tolerance(args.tip_px, args.iou), methods=methods, threads=args.threads,
+        contact_goals=args.contact_goals,
         planner=PlannerConfig(bank_size=args.bank_size, lm_iterations=args.lm_iterations))
     summary = evaluate_control(Predictor.from_checkpoint(args.model),
                                load_rig_config(args.config), settings, out_dir=args.out,
@@ -45,6 +49,8 @@ def register(sub) -> None:
     p.add_argument('--iou', type=float, default=0.9, help='silhouette IoU tolerance')
     p.add_argument('--bank-size', type=int, default=384, help='predictions per scene')
     p.add_argument('--lm-iterations', type=int, default=4, help='LM steps per plan at most')
+    p.add_argument('--contact-goals', action='store_true',
+                   help='ask touching goals to touch the object and free ones to stay clear')
     p.add_argument('--threads', type=int, default=1, help='torch threads (planning: one core)')
     p.add_argument('--quiet', action='store_true', help='no progress bars')
     p.set_defaults(func=_control_eval)

@@ -55,6 +55,7 @@ class EvalSettings:
     tolerance: Tolerance = field(default_factory=Tolerance)
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     methods: tuple = METHODS
+    contact_goals: bool = False     # ask touching goals to touch, free ones to stay clear
     threads: int = 1
 
 
@@ -160,7 +161,8 @@ def evaluate_control(predictor, cfg: RigConfig, settings: EvalSettings, out_dir=
                disable=not progress)
     for gi, g in enumerate(goals):
         ctx = SceneContext.from_initial(g.rest)
-        goal = Goal.images(spec, g.images)
+        contact = ('touch' if g.touching else 'clear') if settings.contact_goals else 'any'
+        goal = Goal.images(spec, g.images, contact)
         plant = SimForward(cfg, g.scene, views, limits, spec.size, spec.channels == 1)
         net = NetworkForward(predictor, g.rest, limits)
         key = g.scene.id
@@ -239,7 +241,7 @@ def _json(o):
 def summarise(rows: dict, settings: EvalSettings) -> dict:
     """Success rates (all, touching, free, within 1..N iterations), medians, per method."""
     out = {'tolerance': {'tip_px': settings.tolerance.tip_px, 'iou': settings.tolerance.iou},
-           'max_iterations': settings.max_iterations}
+           'max_iterations': settings.max_iterations, 'contact_goals': settings.contact_goals}
     for m, rs in rows.items():
         if not rs:
             continue
