@@ -43,8 +43,8 @@ def _model(tmp: Path) -> tuple[Predictor, str]:
 
 def _ms(ts) -> dict:
     a = np.asarray(ts) * 1e3
-    return {'median': round(float(np.median(a)), 1), 'p90': round(float(np.percentile(a, 90)),
-                                                                   1)}
+    return {'median': round(float(np.median(a)), 1),
+            'p90': round(float(np.percentile(a, 90)), 1)}
 
 
 def run() -> dict:

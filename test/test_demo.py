@@ -18,8 +18,8 @@ pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
 def test_tiny_demo_end_to_end_and_reuse(tmp_path):
     s = DemoSettings(out=str(tmp_path / 'demo'), scenes=2, actuations=4, rate_hz=4.0,
-                     max_steps=20, threads=1, live_scenes=1, live_commands=3, control_goals=2,
-                     control_live=1, control_bank=48, seed=5)
+                     max_steps=20, threads=1, live_scenes=1, live_commands=3, seed=5)
+    s.control_goals, s.control_live, s.control_bank = 2, 1, 48     # the control stage
     report = run_demo(s)
     root = Path(s.out)
     text = report.read_text()
@@ -66,7 +66,7 @@ def test_tiny_demo_end_to_end_and_reuse(tmp_path):
         assert (root / fig).stat().st_size > 10_000
 
     # A second run with the same settings reuses every stage.
-    before = {n: (root / f'.{n}.done.json').stat().st_mtime_ns for n in STAGES}
+    before = {n: (root / f'.{n}.done.json').stat().st_mtime_ns for n in STAGES + ('control',)}
     run_demo(s)
-    after = {n: (root / f'.{n}.done.json').stat().st_mtime_ns for n in STAGES}
+    after = {n: (root / f'.{n}.done.json').stat().st_mtime_ns for n in STAGES + ('control',)}
     assert before == after

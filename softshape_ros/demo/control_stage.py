@@ -5,8 +5,8 @@ Two parts. ``softshape control-eval`` on the simulated rig (the planner through 
 against random search with the same budget and against the planner through the simulator,
 the oracle), and the same loop live over DDS: ``mock_hardware`` and ``shape_controller`` as
 separate processes, goal images published the way a user would, the results read from
-``/softshape/goal/result``. Kept apart from ``pipeline.py`` so that file only calls
-:func:`run` and :func:`report_lines`.
+``/softshape/goal/result``. Kept apart from ``pipeline.py`` so that it and ``report.py``
+only call :func:`run_stage` and :func:`report_lines` (a line each).
 """
 
 from __future__ import annotations
@@ -20,6 +20,31 @@ import numpy as np
 
 #: DemoSettings fields this stage depends on (its reuse key).
 KEYS = ('control_goals', 'control_live', 'control_bank', 'seed')
+
+
+def run_stage(settings, cfg, root: Path, run_tool, redo: bool) -> dict:
+    """
+    Run the stage after the pipeline's own, or reuse it (same settings, model unchanged).
+
+    ``redo``: an earlier stage was redone (then so is this one). The marker is
+    ``.control.done.json``, like the pipeline's stages.
+    """
+    key = dict(settings.stage_key('live'), **{k: getattr(settings, k) for k in KEYS})
+    marker = root / '.control.done.json'
+    if not redo and marker.is_file():
+        try:
+            done = json.loads(marker.read_text())
+            if done.get('key') == key:
+                print(f'\n=== control: reusing {root} (same settings; --fresh to redo) ===')
+                return done['result']
+        except (OSError, json.JSONDecodeError):
+            pass
+    print('\n=== control ===', flush=True)
+    t0 = time.monotonic()
+    res = run(settings, root, cfg, root / 'model', run_tool)
+    res['seconds'] = round(time.monotonic() - t0, 1)
+    marker.write_text(json.dumps({'key': key, 'result': res}, indent=2))
+    return res
 
 
 def run(settings, root: Path, cfg, checkpoint: Path, run_tool) -> dict:
@@ -251,6 +276,7 @@ def report_lines(res: dict | None) -> list[str]:
         return []
     ev = res['eval']
     lines = ['## Control: reaching goal shapes through the model (closed loop)', '',
+             f'{res.get("seconds")} s (0 = reused).', '',
              f'`softshape control-eval`: {ev.get("goals")} goals (images of random actuations '
              'in placements not seen in training, half pressed against the object), at most '
              f'{ev["max_iterations"]} closed-loop iterations; reached = tip within '

@@ -24,7 +24,7 @@ from softshape_ros.config import load_rig_config
 from softshape_ros.demo import control_stage
 from softshape_ros.processes import NodeProcess, which_softshape
 
-STAGES = ('record', 'dataset', 'train', 'evaluate', 'live', 'control')
+STAGES = ('record', 'dataset', 'train', 'evaluate', 'live')
 
 
 @dataclass
@@ -39,7 +39,7 @@ class DemoSettings:
     threads: int = 2
     live_scenes: int = 2
     live_commands: int = 8
-    control_goals: int = 8       # control stage (demo/control_stage.py)
+    control_goals: int = 8       # the control stage (demo/control_stage.py)
     control_live: int = 4
     control_bank: int = 384
     seed: int = 0
@@ -47,8 +47,7 @@ class DemoSettings:
     def stage_key(self, stage: str) -> dict:
         keys = {'record': ('scenes', 'actuations', 'rate_hz', 'seed'),
                 'dataset': (), 'train': ('max_steps', 'seed'), 'evaluate': (),
-                'live': ('live_scenes', 'live_commands', 'seed'),
-                'control': control_stage.KEYS}
+                'live': ('live_scenes', 'live_commands', 'seed')}
         upto = STAGES[:STAGES.index(stage) + 1]
         key = {k: getattr(self, k) for s in upto for k in keys[s]}
         if 'train' in upto:     # a model of older network code is retrained, not reused
@@ -266,12 +265,11 @@ def run_demo(settings: DemoSettings, fresh: bool = False) -> Path:
                       str(root / 'dataset'), '--validation', '--out', str(root / 'eval')],
                      root / 'logs' / 'evaluate.txt')
             res = json.loads((root / 'eval' / 'metrics.json').read_text())
-        elif name == 'live':
-            res = live(settings, stage, cfg, root / 'model')
         else:
-            res = control_stage.run(settings, root, cfg, root / 'model', run_tool)
+            res = live(settings, stage, cfg, root / 'model')
         timings[name] = round(time.monotonic() - t0, 1)
         results[name] = stage.done(dict(res, seconds=timings[name]))
+    results['control'] = control_stage.run_stage(settings, cfg, root, run_tool, redo)
     from softshape_ros.demo.report import write_report
     report = write_report(root, settings, results)
     banner(f'done: {report}')

@@ -26,8 +26,7 @@ def write_report(root: Path, settings, results: dict) -> Path:
         f'| dataset | {ds.get("seconds")} | `{ds["dataset"]}` |',
         f'| train | {tr.get("seconds")} | `{tr.get("checkpoint")}` |',
         f'| evaluate | {ev.get("seconds")} | `{root / "eval"}` |',
-        f'| live | {lv.get("seconds")} | `{lv.get("figure")}` |',
-        f'| control | {results.get("control", {}).get("seconds")} | `{root / "control"}` |', '',
+        f'| live | {lv.get("seconds")} | `{lv.get("figure")}` |', '',
         '## Recording', '',
         f'{rec["triggers"]} triggers ({settings.scenes} scenes x (1 rest + {settings.actuations}'
         f' actuations) at {settings.rate_hz} Hz); session `{rec["session"]}`.', '',
@@ -66,10 +65,9 @@ def write_report(root: Path, settings, results: dict) -> Path:
               f'{_fmt(lv["command_to_prediction_ms"]["median"])} / '
               f'{_fmt(lv["command_to_prediction_ms"]["p99"])} |', '',
               '![live panels](live_panels.png)', '',
-              ]
-    from softshape_ros.demo.control_stage import report_lines
-    lines += report_lines(results.get('control'))
-    lines += [f'Node logs: `{root / "logs"}`.', '']
+              f'Node logs: `{root / "logs"}`.', '']
+    from softshape_ros.demo.control_stage import report_lines   # the control stage
+    lines[-2:-2] = report_lines(results.get('control'))
     path = root / 'report.md'
     path.write_text('\n'.join(lines))
     return path
