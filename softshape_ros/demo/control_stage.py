@@ -6,7 +6,7 @@ against random search with the same budget and against the planner through the s
 the oracle), and the same loop live over DDS: ``mock_hardware`` and ``shape_controller`` as
 separate processes, goal images published the way a user would, the results read from
 ``/softshape/goal/result``. Kept apart from ``pipeline.py`` so that it and ``report.py``
-only call :func:`run_stage` and :func:`report_lines` (a line each).
+only call :func:`run_stage` and :func:`append_report` (a line each).
 """
 
 from __future__ import annotations
@@ -268,6 +268,14 @@ class ControlClient:
                    processes=procs)
         with self.lock:
             return self.results[before]
+
+
+def append_report(path: Path, res: dict | None) -> None:
+    """Append the stage's section to ``report.md``."""
+    lines = report_lines(res)
+    if lines:
+        with open(path, 'a') as f:
+            f.write('\n' + '\n'.join(lines) + '\n')
 
 
 def report_lines(res: dict | None) -> list[str]:

@@ -66,8 +66,8 @@ def write_report(root: Path, settings, results: dict) -> Path:
               f'{_fmt(lv["command_to_prediction_ms"]["p99"])} |', '',
               '![live panels](live_panels.png)', '',
               f'Node logs: `{root / "logs"}`.', '']
-    from softshape_ros.demo.control_stage import report_lines   # the control stage
-    lines[-2:-2] = report_lines(results.get('control'))
     path = root / 'report.md'
     path.write_text('\n'.join(lines))
+    from softshape_ros.demo.control_stage import append_report   # the control stage
+    append_report(path, results.get('control'))
     return path
