@@ -307,7 +307,7 @@ def goal_figure(goals, rows, views, path, n: int = 6) -> Path:
                 if labels[k]:
                     ax.set_xlabel(labels[k], fontsize=6)
     fig.suptitle('interaction-shape control: goal / plan / reached', fontsize=9)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0, 1, 0.97))
     fig.savefig(path, dpi=90)
     plt.close(fig)
     return Path(path)

@@ -151,7 +151,7 @@ def _figure(rows, views, pred, cfg, path: Path) -> Path:
                                   f'tip {max(tips) if tips else float("nan"):.1f} px', fontsize=6)
     fig.suptitle('shape_controller over DDS against mock_hardware (unseen placements)',
                  fontsize=9)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0, 1, 0.97))
     fig.savefig(path, dpi=90)
     plt.close(fig)
     return path
