@@ -178,6 +178,8 @@ def test_closed_loop_corrects_a_biased_model(rod):
             loop.observe(plant.images(plan.pressures_pa))
         reached_first += loop.observations[0].success
         assert loop.success, [o.to_dict() for o in loop.observations]
+        us = [p.u for p in loop.plans]                  # never the same command twice
+        assert all(np.abs(a - b).max() >= 0.01 for i, a in enumerate(us) for b in us[:i])
         first, last = loop.observations[0], loop.observations[-1]
         if len(loop.observations) > 1:
             assert last.residual < first.residual

@@ -21,6 +21,10 @@ from softshape_ros.control.objective import CostWeights, Objective
 from softshape_ros.control.planner import Bank, Planner, PlanResult
 
 
+#: A re-plan this close (in every chamber, fraction of the limit) to a tried command repeats it.
+REPEAT_U = 0.01
+
+
 @dataclass(frozen=True)
 class Tolerance:
     """When a goal counts as reached (issue 16: tip within 2 px in every view, IoU >= 0.9)."""
@@ -100,6 +104,20 @@ class ShapeLoop:
             raise RuntimeError('observe the last plan before planning again')
         warm = self._best[1] if self._best is not None else None
         result = self.planner.plan(self.objective, self.forward, self.bank, warm=warm)
+        tried = [p.u for p in self.plans]
+        if tried and min(np.abs(result.u - u).max() for u in tried) < REPEAT_U:
+            # The corrected model sees nothing better near the best command: commanding it
+            # again would only film it again. Start once more, from the best bank entry
+            # away from every command tried, free of the trust region.
+            anchor, self.objective.anchor = self.objective.anchor, None
+            try:
+                again = self.planner.plan(self.objective, self.forward, self.bank,
+                                          exclude=tried)
+            finally:
+                self.objective.anchor = anchor
+            again.plan_ms += result.plan_ms
+            again.evaluations += result.evaluations
+            result = again
         self.plans.append(result)
         return result
 

@@ -101,10 +101,12 @@ class Bank:
             return objective.bank_cost(self)
 
 
-def _distinct(order, u, k: int, min_dist: float) -> list:
-    picked = []
+def _distinct(order, u, k: int, min_dist: float, exclude=()) -> list:
+    """The first ``k`` entries of ``order`` apart from each other and from ``exclude``."""
+    picked, away = [], [torch.as_tensor(np.asarray(e, dtype=np.float32)) for e in exclude]
     for i in order.tolist():
-        if all(float((u[i] - u[j]).abs().max()) >= min_dist for j in picked):
+        if all(float((u[i] - u[j]).abs().max()) >= min_dist for j in picked) and \
+                all(float((u[i] - e).abs().max()) >= min_dist for e in away):
             picked.append(i)
         if len(picked) == k:
             break
@@ -117,8 +119,14 @@ class Planner:
     def __init__(self, config: PlannerConfig = PlannerConfig()):
         self.cfg = config
 
-    def plan(self, objective, forward, bank: Bank | None = None, warm=None) -> PlanResult:
-        """Return the best plan for ``objective``; ``warm`` (u) joins the starts."""
+    def plan(self, objective, forward, bank: Bank | None = None, warm=None,
+             exclude=()) -> PlanResult:
+        """
+        Return the best plan for ``objective``.
+
+        ``warm`` (u) replaces the last bank start; bank starts keep ``min_start_distance``
+        from each other and from every u in ``exclude`` (commands already tried).
+        """
         t0 = time.perf_counter()
         ev0 = forward.evaluations
         cfg = self.cfg
@@ -126,7 +134,8 @@ class Planner:
             bank = Bank.for_scene(forward, objective.ctx, cfg.bank_size, cfg.seed)
         costs = bank.costs(objective)
         order = torch.argsort(costs)
-        starts = [bank.u[i] for i in _distinct(order, bank.u, cfg.starts, cfg.min_start_distance)]
+        picked = _distinct(order, bank.u, cfg.starts, cfg.min_start_distance, exclude)
+        starts = [bank.u[i] for i in picked] or [bank.u[int(order[0])]]
         if warm is not None:
             starts = [torch.as_tensor(np.asarray(warm, dtype=np.float32))] + starts[:-1]
         u = torch.stack(starts)
@@ -202,7 +211,8 @@ class RandomSearch:
         self.budget = int(budget)
         self.rng = np.random.default_rng(seed)
 
-    def plan(self, objective, forward, bank: Bank | None = None, warm=None) -> PlanResult:
+    def plan(self, objective, forward, bank: Bank | None = None, warm=None,
+             exclude=()) -> PlanResult:
         t0 = time.perf_counter()
         ev0 = forward.evaluations
         best_u, best_cost, best_y = None, float('inf'), None
