@@ -102,7 +102,7 @@ class Bank:
 
 
 def _distinct(order, u, k: int, min_dist: float, exclude=()) -> list:
-    """The first ``k`` entries of ``order`` apart from each other and from ``exclude``."""
+    """Pick the first ``k`` entries of ``order`` apart from each other and from ``exclude``."""
     picked, away = [], [torch.as_tensor(np.asarray(e, dtype=np.float32)) for e in exclude]
     for i in order.tolist():
         if all(float((u[i] - u[j]).abs().max()) >= min_dist for j in picked) and \
