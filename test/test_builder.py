@@ -166,6 +166,8 @@ def test_build_dataset_pairs_and_drops_exactly(session, cfg, tmp_path):
     assert ds.meta['kept'] == 5 and ds.meta['triggers'] == 12
     assert ds.meta['dropped'] == report['dropped']
     np.testing.assert_array_equal(ds.max_pressure_pa, cfg.max_pressures_pa)
+    # A real rig does not measure contact: no record, and the dataset says why.
+    assert ds.contact is None and 'does not measure contact' in ds.meta['contact']['why']
 
     def expect(stamp, cam):
         cc = cfg.cameras[cam]

@@ -18,7 +18,8 @@ pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
 def test_tiny_demo_end_to_end_and_reuse(tmp_path):
     s = DemoSettings(out=str(tmp_path / 'demo'), scenes=2, actuations=4, rate_hz=4.0,
-                     max_steps=20, threads=1, live_scenes=1, live_commands=3, seed=5)
+                     max_steps=20, finetune_steps=10, threads=1, live_scenes=1,
+                     live_commands=3, seed=5)
     s.control_goals, s.control_live, s.control_bank = 2, 1, 48     # the control stage
     report = run_demo(s)
     root = Path(s.out)
@@ -48,9 +49,16 @@ def test_tiny_demo_end_to_end_and_reuse(tmp_path):
 
     # The model and the live stage: predictions came back for every command.
     assert (root / 'model' / 'model.safetensors').is_file()
+    from softshape_ros.model.checkpoint import read_config
+    trained = read_config(root / 'model')['training']
+    assert trained['init_from'] == (s.pretrained or None)     # the shipped checkpoint, if any
     live = json.loads((root / '.live.done.json').read_text())['result']
     assert live['samples'] == s.live_scenes * s.live_commands
     assert np.isfinite(live['rmse_255']) and 0 <= live['rmse_255'] < 255
+    # Scored like `softshape evaluate`, beside the copy baseline, with the targets.
+    assert set(live['model']) == set(live['copy']) and 'silhouette_iou' in live['model']
+    assert set(live['targets_met']) == {'silhouette_iou', 'tip_error_px', 'yellow_vs_copy'}
+    assert '| target | wanted | got | met |' in text
     assert all(code == 0 for code in live['exit_codes'].values()), live['exit_codes']
     assert (root / 'live_panels.png').stat().st_size > 10_000
 

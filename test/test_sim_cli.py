@@ -83,7 +83,7 @@ def test_simulate_writes_a_loadable_dataset_same_for_any_worker_count(tmp_path, 
     assert len(a) == 6 and a.initial.shape == (6, 2, 1, 64, 64) and a.views == ['main', 'side']
     assert np.array_equal(a.target, b.target) and np.array_equal(a.pressure, b.pressure)
     assert np.array_equal(a.initial[0], a.initial[1]) and list(a.scene) == [0, 0, 0, 1, 1, 1]
-    assert a.meta['simulator']['samples'] == 6 and 'contact_share' in out1
+    assert a.meta['simulator']['samples'] == 6 and 'touching_share' in out1
     # Targets differ from the rest images (the robot moved) and images are not blank.
     assert (a.target.astype(int) - a.initial).any() and a.target.std() > 10
     mono = run_json(capsys, ['simulate', '--samples', '2', '--scenes', '1', '--views', 'mono',

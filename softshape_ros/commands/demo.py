@@ -18,7 +18,15 @@ def register(sub) -> None:
     p.add_argument('--scenes', type=int, default=d.scenes, help='object placements recorded')
     p.add_argument('--actuations', type=int, default=d.actuations, help='samples per scene')
     p.add_argument('--rate-hz', type=float, default=d.rate_hz, help='actuation rate (paper: 2)')
-    p.add_argument('--max-steps', type=int, default=d.max_steps, help='training steps at most')
+    p.add_argument('--max-steps', type=int, default=d.max_steps,
+                   help='training steps at most (from scratch)')
+    p.add_argument('--pretrained', default=d.pretrained,
+                   help="checkpoint to fine-tune ('' = train from scratch; default: the "
+                        "shipped models/ours_stereo_gray, rebuilt by make pretrain)")
+    p.add_argument('--finetune-lr', type=float, default=d.finetune_lr,
+                   help='Adam learning rate when fine-tuning the pre-trained checkpoint')
+    p.add_argument('--finetune-steps', type=int, default=d.finetune_steps,
+                   help='fine-tuning steps (batch 64) when starting from the checkpoint')
     p.add_argument('--threads', type=int, default=d.threads, help='torch threads')
     p.add_argument('--live-scenes', type=int, default=d.live_scenes,
                    help='unseen placements in the live stage')

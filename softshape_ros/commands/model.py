@@ -1,5 +1,5 @@
 """
-``softshape train | evaluate | export | reproduce``: the visual forward model's tools.
+``softshape train | evaluate | export | reproduce | pretrain | distance-sweep``: the model's tools.
 
 ``train`` runs unchanged under ``torchrun --nproc_per_node N .venv/bin/softshape train ...``
 (DDP: gloo on CPU, NCCL on GPUs).
@@ -19,7 +19,8 @@ def _train(args) -> int:
     cfg = TrainConfig(arch=args.arch, seed=args.seed, split=args.split,
                       batch_size=args.batch_size, lr=args.lr, max_steps=args.max_steps,
                       eval_every=args.eval_every, patience=args.patience,
-                      threads=args.threads)
+                      threads=args.threads, loss=args.loss, init=args.init,
+                      min_steps=args.min_steps)
     res = train(ds, cfg, out=args.out, indices=rows, progress=not args.quiet)
     summary = {'checkpoint': args.out, 'steps': res.steps,
                'val_rmse_255': 255 * res.best_val_mse ** 0.5,
@@ -62,19 +63,37 @@ def _export(args) -> int:
 
 
 def _reproduce(args) -> int:
-    from softshape_ros.model.reproduce import ReproConfig, reproduce
+    from softshape_ros.experiments.reproduction import reproduce_with_sweep
+    from softshape_ros.model.reproduce import ReproConfig
     sizes = [int(s) for s in args.sizes.split(',')]
     cfg = ReproConfig(sizes=sizes, test_fraction=args.test_fraction, seed=args.seed,
                       max_steps=args.max_steps, patience=args.patience,
                       eval_every=args.eval_every, threads=args.threads)
-    table = reproduce(args.dataset, args.out, cfg, work=args.work, fig4c=not args.no_fig4c,
-                      splits=args.splits.split(','), views=args.views.split(','),
-                      archs=args.archs.split(','))
+    table = reproduce_with_sweep(args.dataset, args.out, cfg, work=args.work,
+                                 sweep=not args.no_fig4c, splits=args.splits.split(','),
+                                 views=args.views.split(','), archs=args.archs.split(','))
     sys.stdout.write(table)
     return 0
 
 
+def _pretrain(args) -> int:
+    from softshape_ros.experiments.pretrain import PretrainSettings, pretrain
+    s = PretrainSettings(samples=args.samples, scenes=args.scenes, seed=args.seed,
+                         max_steps=args.max_steps, batch_size=args.batch_size, lr=args.lr,
+                         eval_every=args.eval_every,
+                         patience=args.patience, threads=args.threads, workers=args.workers)
+    print(json.dumps(pretrain(s, args.out, args.work, progress=not args.quiet)))
+    return 0
+
+
+def _distance_sweep(args) -> int:
+    from softshape_ros.experiments.distance_sweep import run
+    print(json.dumps(run(args.checkpoint, args.out), indent=2))
+    return 0
+
+
 def register(sub) -> None:
+    from softshape_ros.model.losses import LOSSES
     p = sub.add_parser('train', help='train a forward model on a dataset (DDP under torchrun)')
     p.add_argument('--dataset', required=True, help='dataset folder')
     p.add_argument('--out', required=True, help='checkpoint folder to write')
@@ -91,6 +110,11 @@ def register(sub) -> None:
     p.add_argument('--eval-every', type=int, default=10, help='steps between validations')
     p.add_argument('--patience', type=int, default=8,
                    help='validations without improvement before stopping early')
+    p.add_argument('--min-steps', type=int, default=0, help='never stop early before this')
+    p.add_argument('--loss', choices=LOSSES, default=None,
+                   help="training loss (default: the architecture's own, DEFAULT_LOSS)")
+    p.add_argument('--init', default=None,
+                   help='start from this checkpoint (fine-tuning; same arch, views, channels)')
     p.add_argument('--threads', type=int, default=0, help='torch threads (0: default)')
     p.add_argument('--quiet', action='store_true', help='no progress bar')
     p.set_defaults(func=_train)
@@ -123,5 +147,32 @@ def register(sub) -> None:
                    help='train only these splits here (the table uses all cached runs)')
     p.add_argument('--views', default='mono,stereo', help='train only these views here')
     p.add_argument('--archs', default='paper,ours', help='train only these networks here')
-    p.add_argument('--no-fig4c', action='store_true', help='skip the object-distance check')
+    p.add_argument('--no-fig4c', action='store_true', help='skip the object-distance sweep')
     p.set_defaults(func=_reproduce)
+
+    from softshape_ros.experiments.pretrain import PretrainSettings
+    d = PretrainSettings()
+    p = sub.add_parser('pretrain', help='simulate a dataset and pre-train ours on it '
+                                        '(the checkpoint the demo fine-tunes)')
+    p.add_argument('--out', default='models/ours_stereo_gray', help='checkpoint folder')
+    p.add_argument('--work', default='/tmp/softshape_pretrain',
+                   help='where the simulated dataset is kept (reused when unchanged)')
+    p.add_argument('--samples', type=int, default=d.samples)
+    p.add_argument('--scenes', type=int, default=d.scenes)
+    p.add_argument('--seed', type=int, default=d.seed)
+    p.add_argument('--max-steps', type=int, default=d.max_steps)
+    p.add_argument('--batch-size', type=int, default=d.batch_size)
+    p.add_argument('--lr', type=float, default=d.lr)
+    p.add_argument('--eval-every', type=int, default=d.eval_every)
+    p.add_argument('--patience', type=int, default=d.patience)
+    p.add_argument('--threads', type=int, default=d.threads)
+    p.add_argument('--workers', type=int, default=d.workers,
+                   help='simulation processes (0: one per core)')
+    p.add_argument('--quiet', action='store_true', help='no progress bars')
+    p.set_defaults(func=_pretrain)
+
+    p = sub.add_parser('distance-sweep', help="Fig. 4(c): a cylinder moved away, the "
+                                              "simulator's push vs the model's")
+    p.add_argument('--checkpoint', required=True)
+    p.add_argument('--out', required=True, help='folder for distance_sweep.json and .png')
+    p.set_defaults(func=_distance_sweep)

@@ -58,12 +58,14 @@ def _solve(args) -> int:
 
 def _simulate(args) -> int:
     from softshape_ros.sim.generate import generate, make_plan
+    if args.workers < 0:
+        raise ValueError(f'--workers must be >= 0 (0: all cores), got {args.workers}')
     cfg = load_rig_config(args.config)
     views = ['main'] if args.views == 'mono' else list(cfg.cameras)[:2]
     if args.views == 'stereo' and len(views) < 2:
         raise ValueError('--views stereo needs two cameras in the config')
     scenes = load_session(args.session) if args.session else args.scenes
-    plan = make_plan(cfg, args.samples, scenes, args.seed)
+    plan = make_plan(cfg, args.samples, scenes, args.seed, toward_share=args.toward_share)
     ds, summary = generate(cfg, plan, args.out, views, size=args.size or cfg.dataset.image_size,
                            gray=not args.rgb and cfg.dataset.gray, workers=args.workers,
                            supersample=args.supersample,
@@ -75,6 +77,7 @@ def _simulate(args) -> int:
 
 
 def register(sub) -> None:
+    from softshape_ros.sim.generate import TOWARD_SHARE
     p = sub.add_parser('sim-solve', help='solve one simulator equilibrium and print JSON')
     p.add_argument('--config', default=None, help='rig YAML (default: the package rig.yaml)')
     act = p.add_mutually_exclusive_group()
@@ -111,7 +114,11 @@ def register(sub) -> None:
     p.add_argument('--views', choices=('mono', 'stereo'), default='stereo')
     p.add_argument('--out', required=True, help='dataset folder to create')
     p.add_argument('--seed', type=int, default=0)
-    p.add_argument('--workers', type=int, default=0, help='processes (default: all cores)')
+    p.add_argument('--toward-share', type=float, default=TOWARD_SHARE,
+                   help='share of actuations drawn to bend towards the object (0: all '
+                        f'uniform, as the recorded rig; default {TOWARD_SHARE})')
+    p.add_argument('--workers', type=int, default=0,
+                   help='processes (default 0: all cores; 1: no worker processes)')
     p.add_argument('--size', type=int, default=0, help='image size (default: config)')
     p.add_argument('--rgb', action='store_true', help='keep colour (default: config gray)')
     p.add_argument('--supersample', type=int, default=3,

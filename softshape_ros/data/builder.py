@@ -22,7 +22,7 @@ from tqdm import tqdm
 
 from softshape_ros.data.bag_tools import bag_info
 from softshape_ros.data.bag_writer import BagError, jazzy_typestore
-from softshape_ros.data.dataset import DatasetWriter
+from softshape_ros.data.dataset import BAG_CONTACT, DatasetWriter
 from softshape_ros.hardware.pressure import measured_in_order
 from softshape_ros.scene import Scene, SceneError
 from softshape_ros.vision.image_msg import decode_image, stamp_ns
@@ -226,7 +226,7 @@ def build_dataset(bags, out, cfg, gray=None, overwrite: bool = False, progress: 
         'stamps_ns': [r[5] for r in rows],
     }
     w = DatasetWriter(out, len(rows), cams, channels, size, cfg.max_pressures_pa,
-                      meta=meta, overwrite=overwrite)
+                      meta=meta, overwrite=overwrite, contact=BAG_CONTACT)
     for i, (init, target, p, sid, _, _) in enumerate(
             tqdm(rows, desc='write dataset', unit='sample', disable=not progress)):
         w.put(i, init, target, p, sid)

@@ -9,11 +9,22 @@ Arrays are ``.npy`` files so ``np.load(mmap_mode='r')`` maps them without copyin
 - ``target``   N x V x C x S x S uint8 -- images at the trigger
 - ``pressure`` N x 6 float32, Pa      -- measured chamber pressures at the trigger
 - ``scene``    N int64                -- scene index (for split-by-scene)
+
+and, where contact is known (the simulator; format version 2), the contact record:
+
+- ``touching``        N bool    -- the robot's surface is inside the object's
+- ``contact_arc_m``   N float32 -- backbone length in contact (m), 0 if free
+- ``contact_force_n`` N float32 -- magnitude of the object's net force on the robot (N)
+- ``penetration_m``   N float32 -- deepest penetration of the robot into the object (m)
+
+A dataset without those files (a real rig's, from bags, or one written before the record
+existed) loads with ``contact = None`` and ``meta['contact']`` saying why.
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import os
 import shutil
 from dataclasses import dataclass
@@ -22,12 +33,65 @@ from pathlib import Path
 import numpy as np
 
 FORMAT = 'softshape-dataset'
-VERSION = 1
+VERSION = 2                 # 2: the optional contact record; 1 still loads
 ARRAYS = ('initial', 'target', 'pressure', 'scene')
+CONTACT_ARRAYS = ('touching', 'contact_arc_m', 'contact_force_n', 'penetration_m')
+NO_CONTACT_RECORD = 'not recorded: written before datasets carried a contact record'
+NOT_GIVEN = 'not recorded by the program that wrote this dataset'
+BAG_CONTACT = 'unknown: built from recorded bags (the rig does not measure contact)'
+
+log = logging.getLogger(__name__)
 
 
 class DatasetError(ValueError):
     """A dataset folder is missing, incomplete or inconsistent."""
+
+
+@dataclass(frozen=True)
+class ContactRecord:
+    """Per-sample contact: flag, arc length (m), net force (N), max penetration (m)."""
+
+    touching: np.ndarray        # (N,) bool
+    arc_m: np.ndarray           # (N,) float32
+    force_n: np.ndarray         # (N,) float32
+    penetration_m: np.ndarray   # (N,) float32
+
+    def __len__(self) -> int:
+        return int(self.touching.shape[0])
+
+    def __getitem__(self, idx) -> 'ContactRecord':
+        """Return the record of rows ``idx`` (an index array, mask or slice)."""
+        return ContactRecord(self.touching[idx], self.arc_m[idx], self.force_n[idx],
+                             self.penetration_m[idx])
+
+    @property
+    def touching_share(self) -> float:
+        return float(np.mean(self.touching)) if len(self) else 0.0
+
+
+def check_contact(touching, arc_m, force_n, penetration_m, where: str = '') -> None:
+    """Raise DatasetError unless the four arrays form a valid contact record."""
+    t = np.asarray(touching)
+    vals = {'contact_arc_m': np.asarray(arc_m), 'contact_force_n': np.asarray(force_n),
+            'penetration_m': np.asarray(penetration_m)}
+    at = f'{where}: ' if where else ''
+    flag = t.dtype == np.bool_ or (np.issubdtype(t.dtype, np.integer) and np.isin(t, (0, 1)).all())
+    if not flag:
+        raise DatasetError(f'{at}touching must be true/false, got {t.dtype} values')
+    t = t.astype(bool)
+    for name, v in vals.items():
+        if v.shape != t.shape:
+            raise DatasetError(f'{at}{name} has shape {v.shape}, touching {t.shape}')
+        if not np.all(np.isfinite(v)):
+            raise DatasetError(f'{at}{name} is not finite')
+        if np.any(v < 0):
+            raise DatasetError(f'{at}{name} must be >= 0, got {float(v.min())}')
+    free = ~t
+    for name in ('contact_arc_m', 'penetration_m'):
+        if np.any(vals[name][free] != 0):
+            raise DatasetError(f'{at}{name} must be 0 where the robot does not touch')
+    if np.any(vals['contact_arc_m'][t] <= 0):
+        raise DatasetError(f'{at}contact_arc_m must be > 0 where the robot touches')
 
 
 @dataclass
@@ -40,6 +104,7 @@ class Dataset:
     pressure: np.ndarray
     scene: np.ndarray
     meta: dict
+    contact: ContactRecord | None = None
 
     def __len__(self) -> int:
         return int(self.pressure.shape[0])
@@ -57,22 +122,97 @@ class Dataset:
         return np.asarray(self.meta['max_pressure_pa'], dtype=np.float32)
 
 
+@dataclass(frozen=True)
+class DatasetRows:
+    """
+    Where a dataset being written keeps its arrays: enough to write rows from any process.
+
+    Each :meth:`put` maps only the rows it writes and unmaps them again, so writers in
+    several processes share one folder and none of them grows with the dataset.
+    """
+
+    folder: Path
+    n: int
+    shapes: dict                # array name -> (row shape, dtype str)
+
+    def _rows(self, name: str, start: int, stop: int) -> np.memmap:
+        shape, dtype = self.shapes[name]
+        f = self.folder / f'{name}.npy'
+        with open(f, 'rb') as fh:
+            np.lib.format.read_magic(fh)
+            np.lib.format.read_array_header_1_0(fh)
+            header = fh.tell()
+        row = int(np.prod(shape, dtype=np.int64)) * np.dtype(dtype).itemsize
+        return np.memmap(f, dtype=dtype, mode='r+', offset=header + start * row,
+                         shape=(stop - start, *shape))
+
+    def put(self, i, initial, target, pressure, scene, contact=None) -> None:
+        """
+        Store sample(s) at index or slice ``i``; checks finiteness and the contact record.
+
+        ``contact``: (touching, arc_m, force_n, penetration_m) for those rows, required
+        when the dataset has a contact record and refused when it has none.
+        """
+        p = np.asarray(pressure, dtype=np.float32)
+        if not np.all(np.isfinite(p)):
+            raise DatasetError(f'sample {i}: pressure is not finite: {p}')
+        has = 'touching' in self.shapes
+        if has and contact is None:
+            raise DatasetError(f'sample {i}: this dataset records contact; none given')
+        if contact is not None and not has:
+            raise DatasetError(f'sample {i}: this dataset has no contact record')
+        if contact is not None:
+            contact = [np.atleast_1d(np.asarray(a)) for a in contact]
+            check_contact(*contact, where=f'sample {i}')
+        start, stop = self._span(i)
+        values = {'initial': initial, 'target': target, 'pressure': p, 'scene': scene}
+        if contact is not None:
+            values.update(zip(CONTACT_ARRAYS, contact))
+        for name, v in values.items():
+            mm = self._rows(name, start, stop)
+            mm[...] = v
+            mm.flush()
+            del mm
+
+    def _span(self, i) -> tuple[int, int]:
+        if isinstance(i, slice):
+            start, stop, step = i.indices(self.n)
+            if step != 1:
+                raise DatasetError(f'rows must be contiguous, got step {step}')
+        elif isinstance(i, (int, np.integer)):
+            start = int(i) + (self.n if i < 0 else 0)
+            stop = start + 1
+        else:
+            idx = np.asarray(i)
+            if idx.ndim != 1 or not len(idx) or np.any(np.diff(idx) != 1):
+                raise DatasetError('rows must be an index, a slice or a contiguous range')
+            start, stop = int(idx[0]), int(idx[-1]) + 1
+        if not 0 <= start <= stop <= self.n:
+            raise DatasetError(f'rows {start}:{stop} outside a dataset of {self.n}')
+        return start, stop
+
+
 class DatasetWriter:
     """
-    Create a dataset of known size and fill it row by row (or in slices).
+    Create a dataset of known size and fill it row by row (or in slices, from any process).
 
     Writes go to ``<path>.partial`` and the folder is renamed into place on
-    :meth:`close`, so a crash never leaves something that looks complete.
+    :meth:`close`, so a crash never leaves something that looks complete. ``contact``:
+    whether the dataset carries the contact record (True for simulated data) or a string
+    saying why not (e.g. a real rig does not measure contact).
     """
 
     def __init__(self, path, n: int, views: list[str], channels: int, size: int,
-                 max_pressure_pa, meta: dict | None = None, overwrite: bool = False):
+                 max_pressure_pa, meta: dict | None = None, overwrite: bool = False,
+                 contact: bool | str = NOT_GIVEN):
         if n < 0:
             raise DatasetError(f'dataset size must be >= 0, got {n}')
         if channels not in (1, 3):
             raise DatasetError(f'channels must be 1 (gray) or 3 (RGB), got {channels}')
         if len(max_pressure_pa) != 6:
             raise DatasetError(f'max_pressure_pa needs 6 values, got {len(max_pressure_pa)}')
+        if contact is False or (isinstance(contact, str) and not contact.strip()):
+            raise DatasetError('a dataset without a contact record must say why (a string)')
         self.path = Path(path)
         if self.path.exists() and not overwrite:
             raise DatasetError(f'{self.path}: already exists (pass overwrite)')
@@ -81,35 +221,50 @@ class DatasetWriter:
             shutil.rmtree(self.tmp)
         self.tmp.mkdir(parents=True)
         self.n, self.views, self.channels, self.size = n, list(views), channels, size
-        shape = (n, len(views), channels, size, size)
-        mm = np.lib.format.open_memmap
-        self.initial = mm(self.tmp / 'initial.npy', 'w+', np.uint8, shape)
-        self.target = mm(self.tmp / 'target.npy', 'w+', np.uint8, shape)
-        self.pressure = mm(self.tmp / 'pressure.npy', 'w+', np.float32, (n, 6))
-        self.scene = mm(self.tmp / 'scene.npy', 'w+', np.int64, (n,))
+        image = (len(views), channels, size, size)
+        shapes = {'initial': (image, 'uint8'), 'target': (image, 'uint8'),
+                  'pressure': ((6,), 'float32'), 'scene': ((), 'int64')}
+        if contact is True:
+            shapes.update(touching=((), 'bool'), contact_arc_m=((), 'float32'),
+                          contact_force_n=((), 'float32'), penetration_m=((), 'float32'))
+        for name, (shape, dtype) in shapes.items():
+            # Header and size only: rows are mapped when written (DatasetRows.put).
+            mm = np.lib.format.open_memmap(self.tmp / f'{name}.npy', 'w+', dtype, (n, *shape))
+            del mm
+        self.rows = DatasetRows(self.tmp, n, shapes)
+        self.contact = contact
         self.meta = dict(meta or {})
         self.meta.update(format=FORMAT, version=VERSION, views=self.views, channels=channels,
                          image_size=size,
                          max_pressure_pa=[float(v) for v in max_pressure_pa])
+        if contact is not True:
+            self.meta['contact'] = {'recorded': False, 'why': contact}
         self.overwrite = overwrite
 
-    def put(self, i, initial, target, pressure, scene) -> None:
-        """Store sample(s) at index or slice ``i``; checks shapes and finiteness."""
-        p = np.asarray(pressure, dtype=np.float32)
-        if not np.all(np.isfinite(p)):
-            raise DatasetError(f'sample {i}: pressure is not finite: {p}')
-        self.initial[i] = initial
-        self.target[i] = target
-        self.pressure[i] = p
-        self.scene[i] = scene
+    def put(self, i, initial, target, pressure, scene, contact=None) -> None:
+        """Store sample(s) at index or slice ``i`` (see :meth:`DatasetRows.put`)."""
+        self.rows.put(i, initial, target, pressure, scene, contact)
+
+    def abort(self) -> None:
+        """Remove the partial folder (a failed write leaves nothing behind)."""
+        shutil.rmtree(self.tmp, ignore_errors=True)
 
     def close(self, **extra_meta) -> Dataset:
-        """Flush, write meta.json and move the folder into place."""
+        """Write meta.json (with the touching share) and move the folder into place."""
         self.meta.update(extra_meta)
         self.meta['count'] = self.n
-        for a in (self.initial, self.target, self.pressure, self.scene):
-            a.flush()
-        del self.initial, self.target, self.pressure, self.scene
+        if self.contact is True:
+            touching = np.load(self.tmp / 'touching.npy', mmap_mode='r')
+            share = float(np.mean(touching)) if self.n else 0.0
+            self.meta['touching_share'] = share
+            self.meta['contact'] = {
+                'recorded': True, 'touching_share': share,
+                'arrays': list(CONTACT_ARRAYS),
+                'definition': 'touching: the tube surface is inside the object somewhere; '
+                              'contact_arc_m: backbone length where it is; contact_force_n: '
+                              '|net force of the object on the robot|; penetration_m: '
+                              'deepest penetration'}
+            del touching
         (self.tmp / 'meta.json').write_text(json.dumps(self.meta, indent=2, sort_keys=True))
         if self.path.exists():
             shutil.rmtree(self.path)
@@ -118,20 +273,59 @@ class DatasetWriter:
 
 
 def write_dataset(path, initial, target, pressure, scene, max_pressure_pa, views,
-                  meta: dict | None = None, overwrite: bool = False) -> Dataset:
-    """Write whole in-memory arrays as a dataset (convenience over DatasetWriter)."""
+                  meta: dict | None = None, overwrite: bool = False,
+                  contact=None) -> Dataset:
+    """
+    Write whole in-memory arrays as a dataset (convenience over DatasetWriter).
+
+    ``contact``: a :class:`ContactRecord` (or 4-tuple of arrays), or None for no record.
+    """
     initial = np.asarray(initial)
     if initial.ndim != 5:
         raise DatasetError(f'initial must be N x V x C x S x S, got shape {initial.shape}')
     n, v, c, s, _ = initial.shape
-    w = DatasetWriter(path, n, views, c, s, max_pressure_pa, meta, overwrite)
+    if isinstance(contact, ContactRecord):
+        contact = (contact.touching, contact.arc_m, contact.force_n, contact.penetration_m)
+    w = DatasetWriter(path, n, views, c, s, max_pressure_pa, meta, overwrite,
+                      contact=True if contact is not None else NOT_GIVEN)
     if n:
-        w.put(slice(None), initial, target, pressure, scene)
+        w.put(slice(None), initial, target, pressure, scene, contact)
     return w.close()
 
 
+def _load_contact(p: Path, meta: dict, n: int) -> ContactRecord | None:
+    present = [name for name in CONTACT_ARRAYS if (p / f'{name}.npy').exists()]
+    if not present:
+        if 'contact' not in meta:
+            meta['contact'] = {'recorded': False, 'why': NO_CONTACT_RECORD}
+        log.info('%s: no contact record (%s)', p, meta['contact'].get('why'))
+        return None
+    if len(present) != len(CONTACT_ARRAYS):
+        missing = sorted(set(CONTACT_ARRAYS) - set(present))
+        raise DatasetError(f'{p}: contact record incomplete, missing {", ".join(missing)}')
+    arrays = {}
+    for name in CONTACT_ARRAYS:
+        f = p / f'{name}.npy'
+        try:
+            arrays[name] = np.load(f, mmap_mode='r', allow_pickle=False)
+        except (OSError, ValueError) as exc:
+            raise DatasetError(f'{f}: cannot read: {exc}') from None
+        want = np.bool_ if name == 'touching' else np.float32
+        if arrays[name].shape != (n,) or arrays[name].dtype != want:
+            raise DatasetError(f'{f}: {arrays[name].dtype} {arrays[name].shape}, expected '
+                               f'{np.dtype(want)} ({n},)')
+    check_contact(*(arrays[name] for name in CONTACT_ARRAYS), where=str(p))
+    return ContactRecord(arrays['touching'], arrays['contact_arc_m'],
+                         arrays['contact_force_n'], arrays['penetration_m'])
+
+
 def load_dataset(path) -> Dataset:
-    """Open a dataset folder; arrays are memory-mapped read-only and cross-checked."""
+    """
+    Open a dataset folder; arrays are memory-mapped read-only and cross-checked.
+
+    ``ds.contact`` is the :class:`ContactRecord`, or None where the dataset has none
+    (``ds.meta['contact']['why']`` says why).
+    """
     p = Path(path)
     if not p.is_dir():
         raise DatasetError(f'{p}: no such dataset folder')
@@ -141,8 +335,12 @@ def load_dataset(path) -> Dataset:
         raise DatasetError(f'{p}: meta.json missing (incomplete dataset?)') from None
     except json.JSONDecodeError as exc:
         raise DatasetError(f'{p}/meta.json: not valid JSON: {exc}') from None
-    if meta.get('format') != FORMAT:
-        raise DatasetError(f'{p}: not a {FORMAT} folder (format={meta.get("format")!r})')
+    if not isinstance(meta, dict) or meta.get('format') != FORMAT:
+        fmt = meta.get('format') if isinstance(meta, dict) else None
+        raise DatasetError(f'{p}: not a {FORMAT} folder (format={fmt!r})')
+    if meta.get('version', 1) not in range(1, VERSION + 1):
+        raise DatasetError(f'{p}: format version {meta.get("version")!r}, this softshape_ros '
+                           f'reads 1..{VERSION}')
     arrays = {}
     for name in ARRAYS:
         f = p / f'{name}.npy'
@@ -157,4 +355,5 @@ def load_dataset(path) -> Dataset:
     for name, shape in expect.items():
         if arrays[name].shape != shape:
             raise DatasetError(f'{p}/{name}.npy: shape {arrays[name].shape}, expected {shape}')
-    return Dataset(path=p, meta=meta, **arrays)
+    contact = _load_contact(p, meta, n)
+    return Dataset(path=p, meta=meta, contact=contact, **arrays)

@@ -13,6 +13,7 @@ import matplotlib
 import numpy as np
 
 from softshape_ros.data import load_dataset
+from softshape_ros.model.data import no_contact_why, touching_flags
 from softshape_ros.model.metrics import RobotSilhouette, evaluate_arrays, yellow_mask
 from softshape_ros.model.predictor import Predictor
 
@@ -34,17 +35,24 @@ def predict_rows(pred: Predictor, ds, idx, batch: int = 256) -> np.ndarray:
 
 
 def check_compatible(pred: Predictor, ds) -> None:
-    """Refuse a dataset the model was not built for (views, channels, size)."""
-    want = (len(pred.views), pred.channels, pred.image_size)
-    got = (len(ds.views), ds.channels, int(ds.meta.get('image_size', 64)))
-    if want != got:
-        raise ValueError(f'{ds.path}: dataset has views/channels/size {got}, the model '
-                         f'expects {want}')
+    """Refuse a dataset the model was not built for, naming what differs."""
+    want = {'views': list(pred.views), 'channels': pred.channels,
+            'image size': pred.image_size}
+    got = {'views': list(ds.views), 'channels': ds.channels,
+           'image size': int(ds.meta.get('image_size', 64))}
+    bad = [f'{k} {got[k]} (the model expects {want[k]})' for k in want if want[k] != got[k]]
+    if bad:
+        raise ValueError(f'{ds.path}: the dataset has {"; ".join(bad)}')
 
 
 def evaluate(checkpoint, dataset, indices=None, out_dir=None, panels: int = 6,
              silhouette: RobotSilhouette | None = None) -> dict:
-    """Metrics of ``checkpoint`` on ``dataset`` rows (default all); figures to ``out_dir``."""
+    """
+    Metrics of ``checkpoint`` on ``dataset`` rows (default all); figures to ``out_dir``.
+
+    Every metric over all rows, and split into touching / free rows where the dataset
+    records contact (``metrics.json``: ``model``, ``copy``, ``touching``, ``free``).
+    """
     pred = Predictor.from_checkpoint(checkpoint)
     ds = load_dataset(dataset) if isinstance(dataset, (str, Path)) else dataset
     check_compatible(pred, ds)
@@ -54,7 +62,8 @@ def evaluate(checkpoint, dataset, indices=None, out_dir=None, panels: int = 6,
     initial, target = np.asarray(ds.initial[idx]), np.asarray(ds.target[idx])
     predicted = predict_rows(pred, ds, idx)
     sil = silhouette or RobotSilhouette.fit(np.asarray(ds.initial))
-    result = evaluate_arrays(initial, target, predicted, sil)
+    result = evaluate_arrays(initial, target, predicted, sil, touching_flags(ds, idx),
+                             no_contact_why(ds))
     result.update(checkpoint=str(checkpoint), dataset=str(ds.path), arch=pred.config['arch'],
                   views=pred.views, silhouette_threshold=sil.threshold)
     if out_dir is not None:

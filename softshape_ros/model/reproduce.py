@@ -23,9 +23,9 @@ import numpy as np
 from tqdm import tqdm
 
 from softshape_ros.data import Dataset, load_dataset
-from softshape_ros.model.data import split_indices
+from softshape_ros.model.data import no_contact_why, split_indices, touching_flags
 from softshape_ros.model.evaluate import predict_rows, prediction_panels
-from softshape_ros.model.metrics import RobotSilhouette, evaluate_arrays, rmse
+from softshape_ros.model.metrics import RobotSilhouette, evaluate_arrays
 from softshape_ros.model.predictor import Predictor
 from softshape_ros.model.train import TrainConfig, code_stamp, train
 
@@ -53,8 +53,8 @@ class ReproConfig:
 def select_views(ds: Dataset, n: int) -> Dataset:
     """Keep the first ``n`` views of a dataset (mono = the main camera only)."""
     meta = dict(ds.meta, views=list(ds.meta['views'])[:n])
-    return Dataset(path=ds.path, initial=ds.initial[:, :n], target=ds.target[:, :n],
-                   pressure=ds.pressure, scene=ds.scene, meta=meta)
+    return dataclasses.replace(ds, initial=ds.initial[:, :n], target=ds.target[:, :n],
+                               meta=meta)
 
 
 def plan(ds: Dataset, cfg: ReproConfig) -> dict:
@@ -83,13 +83,14 @@ def _fit_and_score(ds, rows, test, tc, ckpt, sil, desc) -> dict:
     secs = time.perf_counter() - t0
     pred = Predictor.from_checkpoint(ckpt)
     p = predict_rows(pred, ds, test)
-    m = evaluate_arrays(np.asarray(ds.initial[test]), np.asarray(ds.target[test]), p, sil)
+    m = evaluate_arrays(np.asarray(ds.initial[test]), np.asarray(ds.target[test]), p, sil,
+                        touching_flags(ds, test), no_contact_why(ds))
     m.update(train_seconds=secs, steps=res.steps,
              val_rmse=255 * res.best_val_mse ** 0.5)
     return m
 
 
-def reproduce(dataset, out, cfg: ReproConfig | None = None, work=None, fig4c: bool = True,
+def reproduce(dataset, out, cfg: ReproConfig | None = None, work=None,
               splits=SPLITS, views=VIEWS, archs=ARCHS) -> str:
     """
     Run (or resume) the grid; write table.md, results.json and figures to ``out``.
@@ -107,7 +108,7 @@ def reproduce(dataset, out, cfg: ReproConfig | None = None, work=None, fig4c: bo
     work = Path(work or tempfile.mkdtemp(prefix='softshape_repro_'))
     sets = {'mono': select_views(full, 1), 'stereo': full}
     sils = {'stereo': RobotSilhouette.fit(np.asarray(full.initial))}
-    sils['mono'] = RobotSilhouette(sils['stereo'].threshold, sils['stereo'].base_rc[:1])
+    sils['mono'] = sils['stereo'].views(1)
     planned = plan(full, cfg)
     grid = [(sp, v, a, s) for sp in SPLITS for s in cfg.sizes for v in VIEWS for a in ARCHS]
     wanted = set(splits) | set(views) | set(archs)
@@ -142,6 +143,7 @@ def reproduce(dataset, out, cfg: ReproConfig | None = None, work=None, fig4c: bo
     summary = {'dataset': str(full.path), 'dataset_count': len(full),
                'provenance': full.meta.get('provenance'), 'config': dataclasses.asdict(cfg),
                'runs': results}
+    summary['work'] = str(work)
     (out / 'results.json').write_text(json.dumps(summary, indent=2))
     table = write_table(results, cfg, out / 'table.md', full)
     rmse_figure(results, cfg, out / 'rmse_vs_size.png')
@@ -157,16 +159,6 @@ def reproduce(dataset, out, cfg: ReproConfig | None = None, work=None, fig4c: bo
         pick = test[np.linspace(0, len(test) - 1, 4).astype(int)]
         panels_figure(sets[view], pick, work, biggest, view, split,
                       out / f'panels_{view}.png')
-    ck = work / _key('random', 'stereo', 'ours', biggest)
-    if fig4c and not (ck / 'config.json').exists():
-        print(f'reproduce: no object-distance check (Fig. 4(c)): it needs the checkpoint {ck}, '
-              'trained here or kept in --work')
-    elif fig4c:
-        try:
-            summary['fig4c'] = distance_check(ck, full, out / 'fig4c_distance.png')
-        except ImportError as exc:   # no simulator in this install
-            print(f'reproduce: skipping the object-distance check: {exc}')
-        (out / 'results.json').write_text(json.dumps(summary, indent=2))
     return table
 
 
@@ -180,26 +172,35 @@ def write_table(results, cfg, path, ds) -> str:
                   + ('(held-out random rows)' if split == 'random'
                      else '(held-out scenes: unseen object placements)'), '',
                   '| size | views | copy | paper | ours | gain | ours RMSE changed | '
-                  'ours yellow % | ours IoU | ours tip err px | ours train s |',
-                  '|---|---|---|---|---|---|---|---|---|---|---|']
+                  'yellow % ours / copy | ours IoU all / touching | ours tip px all / touching '
+                  '| ours SSIM | ours intrusion % | ours train s |',
+                  '|---|---|---|---|---|---|---|---|---|---|---|---|---|']
         for size in cfg.sizes:
             for views in VIEWS:
                 p = results.get(_key(split, views, 'paper', size))
                 o = results.get(_key(split, views, 'ours', size))
                 if not (p and o):
-                    lines.append(f'| {size} | {views} | missing run | | | | | | | | |')
+                    lines.append(f'| {size} | {views} | missing run | | | | | | | | | | |')
                     continue
-                om = o['model']
+                om, touch = o['model'], o.get('touching', {}).get('model', {})
                 gain = 100 * (1 - om['rmse'] / p['model']['rmse'])
                 lines.append(
                     f'| {size} | {views} | {o["copy"]["rmse"]:.2f} | {p["model"]["rmse"]:.2f} '
                     f'| {om["rmse"]:.2f} | {gain:.0f}% | {om["rmse_changed"]:.1f} '
-                    f'| {100 * om["yellow_fraction"]:.2f} | {om["silhouette_iou"]:.3f} '
-                    f'| {om["tip_error_px"]:.2f} | {o["train_seconds"]:.0f} |')
+                    f'| {100 * om["yellow_fraction"]:.2f} / '
+                    f'{100 * o["copy"]["yellow_fraction"]:.2f} '
+                    f'| {om["silhouette_iou"]:.3f} / {_num(touch.get("silhouette_iou"), 3)} '
+                    f'| {om["tip_error_px"]:.2f} / {_num(touch.get("tip_error_px"), 2)} '
+                    f'| {_num(om.get("ssim"), 3)} | {_num(100 * om.get("intrusion", np.nan), 2)} '
+                    f'| {o["train_seconds"]:.0f} |')
         lines.append('')
     text = '\n'.join(lines) + '\n'
     Path(path).write_text(text)
     return text
+
+
+def _num(v, nd) -> str:
+    return '-' if v is None or not np.isfinite(v) else f'{v:.{nd}f}'
 
 
 def rmse_figure(results, cfg, path) -> None:
@@ -247,65 +248,3 @@ def panels_figure(ds, rows, work, size, views, split, path) -> None:
                       np.concatenate(preds), list(ds.views), path,
                       title=f'{views}, {size} training samples, {where} '
                             f'(top {n} rows: paper, bottom {n}: ours)', row_labels=labels)
-
-
-def distance_check(checkpoint, ds, path, distances=(0.020, 0.023, 0.026, 0.030, 0.036)) -> dict:
-    """
-    Fig. 4(c): one actuation, a cylinder at growing distance; simulated vs predicted.
-
-    Returns per distance whether the simulated robot touches the cylinder, how far its tip
-    moved from the free shape's (px, main view: the object's push), and the prediction's
-    RMSE against the simulator. The network sees only the initial image change with the
-    distance, so a model that learned contact tracks the tip shift; one that did not draws
-    the free shape every time.
-    """
-    from softshape_ros.config import load_rig_config
-    from softshape_ros.scene import Scene
-    from softshape_ros.sim.rig import SimRig
-
-    pred = Predictor.from_checkpoint(checkpoint)
-    rig = SimRig(load_rig_config())
-    gray = pred.channels == 1
-    lim = np.asarray(pred.max_pressure_pa)
-    best, act = -np.inf, None
-    for k in range(3):          # the chamber pair that swings the tip furthest towards +x
-        p = np.zeros(6)
-        p[k], p[k + 3] = 0.8 * lim[k], 0.8 * lim[k + 3]
-        rig.set_scene(None)
-        x = rig.solve(p).tip_pose[0, 3]
-        if x > best:
-            best, act = x, p
-    rig.set_scene(None)
-    free = rig.render_inputs(rig.solve(act), size=pred.image_size, gray=gray,
-                             cameras=pred.views)
-    free = np.stack([free[v] for v in pred.views])
-    initial, target, touching = [], [], []
-    for i, d in enumerate(distances):
-        rig.set_scene(Scene(id=1000 + i, object='cylinder', position_m=(d, 0.0, 0.02),
-                            dims={'radius_m': 0.006, 'height_m': 0.05}))
-        imgs = []
-        for p in (np.zeros(6), act):
-            st = rig.solve(p)
-            r = rig.render_inputs(st, size=pred.image_size, gray=gray, cameras=pred.views)
-            imgs.append(np.stack([r[v] for v in pred.views]))
-        touching.append(any(c.gap_m < 0 and not c.ridge for c in st.contacts))
-        initial.append(imgs[0])
-        target.append(imgs[1])
-    initial, target = np.stack(initial), np.stack(target)
-    predicted = pred.predict_batch(initial, [act] * len(distances))
-    sil = RobotSilhouette.fit(initial)
-    free = np.repeat(free[None], len(target), 0)
-    tips = {name: sil.tips(a) for name, a in
-            (('target', target), ('predicted', predicted), ('free', free))}
-    rows = []
-    for i, d in enumerate(distances):
-        shift = [float(np.linalg.norm(tips[k][i, 0] - tips['free'][i, 0]))
-                 for k in ('target', 'predicted')]
-        rows.append({'distance_m': d, 'touching': bool(touching[i]),
-                     'tip_shift_px_simulated': shift[0], 'tip_shift_px_predicted': shift[1],
-                     'rmse': rmse(predicted[i], target[i])})
-    prediction_panels(initial, target, predicted, pred.views, path,
-                      title=f'same actuation {np.round(act / 1000).astype(int).tolist()} kPa, '
-                            'cylinder moved away (simulator vs ours)',
-                      row_labels=[f'x = {d * 1000:.0f} mm' for d in distances])
-    return {'actuation_pa': act.tolist(), 'rows': rows, 'figure': str(path)}

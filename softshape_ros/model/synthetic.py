@@ -90,24 +90,37 @@ def render(points, obj, view: str, rgb: bool = False) -> np.ndarray:
     return np.ascontiguousarray(img.transpose(2, 0, 1))
 
 
-def make_samples(n: int, scenes: int, views=('main',), rgb: bool = False, seed: int = 0):
-    """Return (initial, target, pressure, scene) arrays for ``n`` samples over ``scenes``."""
+def touches(pressure_pa, obj) -> bool:
+    """Return whether the rod of ``pressure_pa`` is stopped by the object."""
+    return obj is not None and _clearance(centreline(pressure_pa), obj) < 0
+
+
+def make_samples(n: int, scenes: int, views=('main',), rgb: bool = False, seed: int = 0,
+                 with_touching: bool = False, gap=(0.35, 0.8)):
+    """
+    Return (initial, target, pressure, scene) arrays for ``n`` samples over ``scenes``.
+
+    Objects stand ``gap`` (min, max, robot lengths) from the axis beyond their radius;
+    nearer means more contact. With ``with_touching`` a fifth array: N bool, the sample's
+    rod is stopped by the object.
+    """
     rng = np.random.default_rng(seed)
     objs = []
     for _ in range(scenes):
         ang = rng.uniform(0, 2 * np.pi)
         r = rng.uniform(0.12, 0.25)
-        dist = rng.uniform(0.35, 0.8) + r
+        dist = rng.uniform(*gap) + r
         objs.append((dist * np.cos(ang), dist * np.sin(ang), r))
     c = 3 if rgb else 1
     shape = (n, len(views), c, SIZE, SIZE)
     initial, target = np.empty(shape, np.uint8), np.empty(shape, np.uint8)
     pressure = np.empty((n, 6), np.float32)
     scene = np.arange(n) % scenes
-    rest = {}
+    rest, touching = {}, np.zeros(n, bool)
     for i in range(n):
         obj = objs[scene[i]]
         p = rng.uniform(0, MAX_PA, 6) * (rng.random(6) < 0.6)
+        touching[i] = touches(p, obj)
         pts = contact_shape(p, obj)
         if scene[i] not in rest:
             r_pts = centreline(np.zeros(6))
@@ -115,6 +128,8 @@ def make_samples(n: int, scenes: int, views=('main',), rgb: bool = False, seed: 
         initial[i] = rest[scene[i]]
         target[i] = np.stack([render(pts, obj, v, rgb) for v in views])
         pressure[i] = p
+    if with_touching:
+        return initial, target, pressure, scene, touching
     return initial, target, pressure, scene
 
 

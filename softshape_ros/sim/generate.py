@@ -1,11 +1,19 @@
 """
-Simulated training data like the paper's (IV-B): random object placements, random actuations.
+Simulated training data like the paper's (IV-B): objects next to the robot, random actuations.
 
-Scenes cycle through cylinder, ring and oblique prism placed around the hanging robot at a
-random azimuth, height and surface gap (0-8 mm), so that a good share of random actuations
-within the chamber limits really touch the object. Every sample is drawn up front from one
-seed, and each scene is simulated by one worker process from its own seed, so a dataset is
-the same whatever the number of processes.
+On the paper's rig the object stands where the robot's bending reaches it, so most samples
+show an interaction. Here scenes cycle through cylinder, ring and oblique prism placed
+around the hanging robot at a random azimuth and height, their surface 1-10 mm from the
+robot's at rest (small gaps more often); actuations are uniform within the chamber limits,
+and a share of them (``toward_share``) is drawn uniform *given* that the bending points at
+the object (within 30 degrees), as an operator steering the robot at it would. About
+two samples in three touch (``meta.json`` ``touching_share``); the rest are free.
+
+Every sample is drawn up front from one seed. The work is cut into chunks of at most
+``CHUNK`` samples of one scene, fixed by the plan; each chunk is simulated from its own
+seeds (rest images from the scene's), so a dataset has the same bytes whatever the number
+of processes. Worker processes write their rows straight into the dataset's memory-mapped
+arrays (only those rows are mapped), so memory stays flat however large the dataset.
 """
 
 from __future__ import annotations
@@ -19,11 +27,20 @@ import numpy as np
 
 from softshape_ros.config import RigConfig
 from softshape_ros.scene import Scene
+from softshape_ros.sim.lie import rpy_matrix
 from softshape_ros.sim.statics import SolverError
 
 OBJECT_CYCLE = ('cylinder', 'ring', 'prism')
-MAX_GAP_M = 0.006
-MAX_RETRIES = 5
+MIN_GAP_M = 0.001           # object surface to robot surface at rest: clear of the robot,
+MAX_GAP_M = 0.010           # ... within reach of its bending,
+GAP_POWER = 2.0             # ... near placements more often: gap = MIN + (MAX - MIN) u^2
+TOWARD_SHARE = 0.7          # actuations drawn to bend towards the object
+TOWARD_WINDOW_RAD = math.radians(30.0)
+CHUNK = 50                  # samples per work item (a scene with more is split)
+MAX_RETRIES = 5             # a failed solve is redrawn (counted) this often at most
+ARC_STEP_M = 1e-4           # backbone sampling of the contact arc length
+CONTACT_GAP_M = 1e-4        # in contact: the tube's surface within this of the object
+_THREAD_VARS = ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS')
 
 
 def random_scene(scene_id: int, kind: str, rng: np.random.Generator, cfg: RigConfig) -> Scene:
@@ -32,7 +49,7 @@ def random_scene(scene_id: int, kind: str, rng: np.random.Generator, cfg: RigCon
     base = np.asarray(cfg.robot.base_position_m, dtype=float)
     length = cfg.robot.total_length_m
     az = rng.uniform(0.0, 2 * math.pi)
-    gap = rng.uniform(0.0, MAX_GAP_M)
+    gap = MIN_GAP_M + (MAX_GAP_M - MIN_GAP_M) * rng.uniform() ** GAP_POWER
     radial = np.array([math.cos(az), math.sin(az), 0.0])
     z = base[2] - length * rng.uniform(0.35, 0.85)
     if kind == 'cylinder':
@@ -63,20 +80,93 @@ def random_scene(scene_id: int, kind: str, rng: np.random.Generator, cfg: RigCon
                  rpy_rad=rpy, dims=dims, label=f'random {kind}')
 
 
+def bend_directions(cfg: RigConfig) -> np.ndarray:
+    """
+    Return (6, 2): the horizontal way each chamber at full pressure swings the tip.
+
+    A chamber bends its segment away from itself; the weight is the segment's lever on
+    the tip (its length times the distance from its middle to the tip), so the sum over
+    chambers of ``p / p_max`` times these points where the actuation bends the robot.
+    """
+    R = rpy_matrix(cfg.robot.base_rpy_rad)
+    lengths = [s.length_m for s in cfg.robot.segments]
+    out = np.zeros((len(cfg.chambers), 2))
+    for i, c in enumerate(cfg.chambers):
+        th = math.radians(c.angle_deg)
+        away = -(R @ np.array([0.0, math.cos(th), math.sin(th)]))[:2]
+        j = c.segment
+        lever = lengths[j] * (lengths[j] / 2 + sum(lengths[j + 1:]))
+        out[i] = lever * away / np.linalg.norm(away)
+    return out
+
+
+def toward_pressures(rng: np.random.Generator, n: int, azimuth: float, cfg: RigConfig,
+                     window: float = TOWARD_WINDOW_RAD) -> np.ndarray:
+    """Return (n, 6) Pa: uniform within the limits, given a bend within ``window`` of azimuth."""
+    limits = np.asarray(cfg.max_pressures_pa, dtype=float)
+    dirs = bend_directions(cfg)
+    aim = np.array([math.cos(azimuth), math.sin(azimuth)])
+    out = np.empty((n, 6))
+    todo = np.arange(n)
+    while len(todo):
+        u = rng.uniform(0.0, 1.0, (len(todo), 6))
+        b = u @ dirs
+        ok = b @ aim >= math.cos(window) * np.linalg.norm(b, axis=1)
+        out[todo[ok]] = u[ok]
+        todo = todo[~ok]
+    return out * limits
+
+
+def _azimuth(scene: Scene, cfg: RigConfig) -> float | None:
+    """Return the object's azimuth about the robot axis (None: no object beside it)."""
+    if scene.object in ('none', 'plane'):
+        return None
+    d = np.asarray(scene.position_m[:2]) - np.asarray(cfg.robot.base_position_m[:2])
+    return math.atan2(d[1], d[0]) if np.hypot(*d) > 1e-3 else None
+
+
+@dataclass(frozen=True)
+class Chunk:
+    """One work item: rows ``start:stop`` (consecutive), all of scene ``scene_index``."""
+
+    scene_index: int
+    start: int
+    stop: int
+
+
 @dataclass
 class Plan:
     """Everything a dataset needs, drawn up front from the seed."""
 
     scenes: list
-    sample_scene: np.ndarray        # (N,) index into scenes
+    sample_scene: np.ndarray        # (N,) index into scenes, non-decreasing
     pressures: np.ndarray           # (N, 6) Pa
     seed: int
+    toward: np.ndarray | None = None    # (N,) bool: drawn to bend towards the object
+
+    def chunks(self, size: int = CHUNK) -> list[Chunk]:
+        """Cut each scene's rows into near-equal chunks of at most ``size`` samples."""
+        out = []
+        for si in range(len(self.scenes)):
+            idx = np.nonzero(self.sample_scene == si)[0]
+            if not len(idx):
+                continue
+            a, b = int(idx[0]), int(idx[-1]) + 1
+            if b - a != len(idx):
+                raise ValueError(f'scene {si}: its samples are not consecutive')
+            parts = -(-(b - a) // size)
+            cuts = a + (np.arange(parts + 1) * (b - a)) // parts
+            out += [Chunk(si, int(s), int(e)) for s, e in zip(cuts[:-1], cuts[1:])]
+        return out
 
 
-def make_plan(cfg: RigConfig, samples: int, scenes, seed: int) -> Plan:
+def make_plan(cfg: RigConfig, samples: int, scenes, seed: int,
+              toward_share: float = TOWARD_SHARE) -> Plan:
     """Draw scenes (an int: how many random ones; or a list of Scene) and actuations."""
     if samples < 1:
         raise ValueError(f'--samples must be >= 1, got {samples}')
+    if not 0.0 <= toward_share <= 1.0:
+        raise ValueError(f'--toward-share must be within [0, 1], got {toward_share}')
     rng = np.random.default_rng(seed)
     if isinstance(scenes, int):
         if scenes < 1:
@@ -90,35 +180,153 @@ def make_plan(cfg: RigConfig, samples: int, scenes, seed: int) -> Plan:
     sample_scene = np.sort(np.arange(samples) % s)
     limits = np.asarray(cfg.max_pressures_pa, dtype=float)
     pressures = rng.uniform(0.0, 1.0, (samples, 6)) * limits
-    return Plan(scene_list, sample_scene, pressures, seed)
+    toward = rng.uniform(0.0, 1.0, samples) < toward_share
+    for si, scene in enumerate(scene_list):
+        az = _azimuth(scene, cfg)
+        rows = np.nonzero(toward & (sample_scene == si))[0]
+        if az is None:
+            toward[sample_scene == si] = False
+        elif len(rows):
+            pressures[rows] = toward_pressures(rng, len(rows), az, cfg)
+    return Plan(scene_list, sample_scene, pressures, seed, toward)
+
+
+# -- the contact record of one equilibrium ------------------------------------------------
+@dataclass(frozen=True)
+class ContactSample:
+    """How one equilibrium touches: flag, arc length (m), net force (N), penetration (m)."""
+
+    touching: bool
+    arc_m: float
+    force_n: float
+    penetration_m: float
+
+
+def _knot_tangents(s: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """Return dP/ds at the knots: three-point differences, exact for quadratics."""
+    h = np.diff(s)[:, None]
+    d = np.diff(P, axis=0) / h
+    T = np.empty_like(P)
+    h0, h1 = h[:-1], h[1:]
+    T[1:-1] = (h1 * d[:-1] + h0 * d[1:]) / (h0 + h1)
+    T[0] = d[0] - h[0] * (d[1] - d[0]) / (h[0] + h[1])
+    T[-1] = d[-1] + h[-1] * (d[-1] - d[-2]) / (h[-1] + h[-2])
+    return T
+
+
+def measure_contact(state, obstacles, step: float = ARC_STEP_M,
+                    band: float = CONTACT_GAP_M) -> ContactSample:
+    """
+    Return the contact record of a :class:`~softshape_ros.sim.rig.SimState`.
+
+    In contact means the tube's surface within ``band`` (0.1 mm) of the object or inside
+    it: the robot is soft (a few tenths of a newton bend its tip by millimetres), so the
+    smooth penalty often holds it back while its surface is still a few hundredths of a
+    millimetre out. Touching: a gap minimum (not a ridge) in contact. Arc: the backbone
+    length in contact; the backbone is interpolated (cubic Hermite through the samples and
+    the contact points) every ``step`` m where the samples come within 0.5 mm of contact,
+    crossings linear. Force: the magnitude of the sum of all contact forces (ridges
+    subtract), what a force sensor under the object reads. Penetration: how deep the
+    surface is inside the object at most (0 if nowhere).
+    """
+    cs = list(state.contacts)
+    force = float(np.linalg.norm(np.sum([c.force_n for c in cs], axis=0))) if cs else 0.0
+    near = [c for c in cs if not c.ridge and c.gap_m <= band]
+    if not near:
+        return ContactSample(False, 0.0, force, 0.0)
+    s = np.asarray(state.s_m, dtype=float)
+    cs_s = np.array([c.s_m for c in near])
+    keep = np.min(np.abs(s[:, None] - cs_s[None, :]), axis=1) > 1e-5
+    knots = np.concatenate([s[keep], cs_s])
+    pts = np.concatenate([state.backbone_m[keep], np.array([c.backbone_m for c in near])])
+    rad = np.concatenate([state.radii_m[keep], np.interp(cs_s, s, state.radii_m)])
+    order = np.argsort(knots, kind='stable')
+    knots, pts, rad = knots[order], pts[order], rad[order]
+
+    def gaps(xyz, r):
+        return np.min([obj.sdf(xyz)[0] - r for obj in obstacles], axis=0) - band
+
+    g = gaps(pts, rad)
+    nk = int(keep.sum())
+    exact = order >= nk                 # the contact points: their refined gaps are exact
+    g[exact] = np.array([c.gap_m for c in near])[order[exact] - nk] - band
+    # Intervals whose ends come within 0.5 mm of contact: sample them every ``step``.
+    k = np.nonzero(np.minimum(g[:-1], g[1:]) <= 5e-4)[0]
+    h = np.diff(knots)[k]
+    m = np.maximum(1, np.ceil(h / step).astype(int))
+    T = _knot_tangents(knots, pts)
+    seg = np.repeat(np.arange(len(k)), m - 1)
+    first = np.cumsum(m - 1) - (m - 1)
+    t = ((np.arange(len(seg)) - first[seg] + 1) / m[seg])[:, None]
+    a, b, hh = k[seg], k[seg] + 1, h[seg][:, None]
+    # Cubic Hermite basis on each interval (positions and knot tangents).
+    p = ((2 * t - 3) * t * t + 1) * pts[a] + ((t - 2) * t + 1) * t * hh * T[a] \
+        + (3 - 2 * t) * t * t * pts[b] + (t - 1) * t * t * hh * T[b]
+    inner = gaps(p, rad[a] + t[:, 0] * (rad[b] - rad[a])) if len(seg) else np.zeros(0)
+    # One profile per interval: its two knots and the points between, end to end.
+    size = m + 1
+    off = np.cumsum(size) - size
+    prof = np.empty(int(size.sum()))
+    ends = np.zeros(len(prof), bool)
+    ends[off] = ends[off + m] = True
+    prof[off], prof[off + m] = g[k], g[k + 1]
+    prof[~ends] = inner
+    lo, hi = prof[:-1], prof[1:]
+    valid = np.ones(len(lo), bool)
+    valid[(off + m)[:-1]] = False       # the step from one interval's end to the next's start
+    width = np.repeat(h / m, size)[:-1]
+    both = (lo <= 0) & (hi <= 0)
+    one = (lo <= 0) != (hi <= 0)
+    dn, up = np.where(lo <= 0, lo, hi) - 1e-15, np.where(lo <= 0, hi, lo)
+    frac = np.where(one, dn / np.where(one, dn - up, -1.0), 0.0)
+    arc = float(np.sum(width * valid * (both + frac)))
+    return ContactSample(True, arc, force, float(state.max_penetration_m))
 
 
 # -- worker side ------------------------------------------------------------------------
 _WORKER = {}
 
 
-def _init_worker(cfg, size, gray, views, supersample, noise):
-    os.environ.setdefault('OMP_NUM_THREADS', '1')
-    _WORKER.update(cfg=cfg, size=size, gray=gray, views=views, supersample=supersample,
-                   noise=noise)
-
-
-def simulate_scene(job):
-    """Simulate one scene: rest images, then each actuation. Runs in a worker process."""
+def _init_worker(cfg, rows, size, gray, views, supersample, noise):
     from softshape_ros.sim.rig import SimRig
+    rig = SimRig(cfg, image_noise_std=noise[0], pressure_noise_pa=noise[1])
+    _WORKER.clear()
+    _WORKER.update(cfg=cfg, rows=rows, size=size, gray=gray, views=list(views),
+                   supersample=supersample, rig=rig, rest=None)
+
+
+def simulate_chunk(job):
+    """
+    Simulate and write one chunk: the scene's rest images, then each actuation.
+
+    Runs in a worker process; returns (rows, stats). The rig starts from the scene's rest
+    equilibrium, with the scene's seed for the rest and the chunk's for the actuations,
+    whichever process runs it and whatever it ran before.
+    """
     w = _WORKER
-    scene_index, scene, indices, pressures, seed = job
-    rig = SimRig(w['cfg'], seed=seed, image_noise_std=w['noise'][0],
-                 pressure_noise_pa=w['noise'][1])
+    rig, views = w['rig'], w['views']
+    chunk, scene, pressures, seed = job
+    si = chunk.scene_index
+
+    def inputs(state):
+        img = rig.render_inputs(state, w['size'], w['gray'], w['supersample'], views)
+        return np.stack([img[v] for v in views])
+
     rig.set_scene(scene)
-    rest = rig.render_inputs(rig.solve([0.0] * 6), w['size'], w['gray'], w['supersample'],
-                             w['views'])
-    initial = np.stack([rest[v] for v in w['views']])
-    rng = np.random.default_rng(seed + 1)
+    rig.rng = np.random.default_rng([seed, si])
+    rest = rig.solve([0.0] * 6)
+    if w['rest'] is None or w['rest'][0] != si:
+        w['rest'] = (si, inputs(rest))
+    initial = w['rest'][1]
+    rig.rng = np.random.default_rng([seed, si, chunk.start, 0])
+    redraw = np.random.default_rng([seed, si, chunk.start, 1])
     limits = np.asarray(w['cfg'].max_pressures_pa, dtype=float)
-    out_p, out_t = [], []
-    stats = {'touch': 0, 'replaced': 0, 'iterations': [], 'max_penetration_m': 0.0}
-    for p in pressures:
+    n = chunk.stop - chunk.start
+    target = np.empty((n, *initial.shape), np.uint8)
+    pressure = np.empty((n, 6), np.float32)
+    record = np.zeros((4, n))
+    stats = {'replaced': 0, 'iterations': np.empty(n, np.int32)}
+    for k, p in enumerate(pressures):
         for attempt in range(MAX_RETRIES + 1):
             try:
                 st = rig.solve(p)
@@ -127,69 +335,102 @@ def simulate_scene(job):
                 if attempt == MAX_RETRIES:
                     raise
                 stats['replaced'] += 1
-                p = rng.uniform(0.0, 1.0, 6) * limits
+                p = redraw.uniform(0.0, 1.0, 6) * limits
                 rig.set_scene(scene)
-        img = rig.render_inputs(st, w['size'], w['gray'], w['supersample'], w['views'])
-        out_t.append(np.stack([img[v] for v in w['views']]))
-        out_p.append(st.pressures_pa)
-        stats['touch'] += int(any(c.gap_m < 0 for c in st.contacts))
-        stats['iterations'].append(st.iterations)
-        stats['max_penetration_m'] = max(stats['max_penetration_m'], st.max_penetration_m)
-    return scene_index, indices, initial, np.stack(out_t), np.stack(out_p), stats
+        target[k] = inputs(st)
+        pressure[k] = st.pressures_pa
+        c = measure_contact(st, rig.obstacles)
+        record[:, k] = (c.touching, c.arc_m, c.force_n, c.penetration_m)
+        stats['iterations'][k] = st.iterations
+    contact = (record[0].astype(bool), record[1].astype(np.float32),
+               record[2].astype(np.float32), record[3].astype(np.float32))
+    w['rows'].put(slice(chunk.start, chunk.stop), initial, target, pressure, scene.id, contact)
+    stats['touching'] = int(contact[0].sum())
+    stats['max_penetration_m'] = float(record[3].max())
+    return chunk, stats
+
+
+def _context():
+    """Return a start method safe with threads in the parent (3.12 warns on fork)."""
+    methods = mp.get_all_start_methods()
+    ctx = mp.get_context('forkserver' if 'forkserver' in methods else 'spawn')
+    if ctx.get_start_method() == 'forkserver':
+        ctx.set_forkserver_preload(['softshape_ros.sim.rig'])
+    return ctx
 
 
 def generate(cfg: RigConfig, plan: Plan, out, views, size: int = 64, gray: bool = True,
              workers: int = 0, supersample: int = 3, noise=(0.0, 0.0), overwrite=False,
-             progress: bool = True, source: str = ''):
-    """Write the plan as a dataset at ``out`` (processes over scenes, tqdm progress)."""
+             progress: bool = True, source: str = '', chunk: int = CHUNK):
+    """
+    Write the plan as a dataset at ``out``: chunks over processes, tqdm progress.
+
+    ``workers``: processes (0: all cores; 1: this process). Returns (Dataset, summary).
+    """
+    import time
+
     from tqdm import tqdm
 
     from softshape_ros.data.dataset import DatasetWriter
+    t0 = time.perf_counter()
     n = len(plan.pressures)
     channels = 1 if gray else 3
     writer = DatasetWriter(out, n, list(views), channels, size, cfg.max_pressures_pa,
-                           overwrite=overwrite)
-    jobs = []
-    for si, scene in enumerate(plan.scenes):
-        idx = np.nonzero(plan.sample_scene == si)[0]
-        if len(idx):
-            jobs.append((si, scene, idx, plan.pressures[idx], plan.seed * 100003 + si))
-    workers = workers or min(len(jobs), os.cpu_count() or 1)
-    init = (cfg, size, gray, list(views), supersample, noise)
-    touch, replaced, iters, pen = 0, 0, [], 0.0
+                           overwrite=overwrite, contact=True)
+    jobs = [(c, plan.scenes[c.scene_index], plan.pressures[c.start:c.stop], plan.seed)
+            for c in plan.chunks(chunk)]
+    workers = max(1, min(len(jobs), workers or os.cpu_count() or 1))
+    init = (cfg, writer.rows, size, gray, list(views), supersample, noise)
+    touching, replaced, pen = 0, 0, 0.0
+    iters = np.zeros(n, np.int32)
     bar = tqdm(total=n, desc='simulate', unit='sample', disable=not progress)
+    pool = None
     try:
-        if workers <= 1:
+        if workers == 1:
             _init_worker(*init)
-            results = map(simulate_scene, jobs)
-            pool = None
+            results = map(simulate_chunk, jobs)
         else:
-            pool = mp.get_context('fork').Pool(workers, _init_worker, init)
-            results = pool.imap_unordered(simulate_scene, jobs)
-        for si, idx, initial, target, pressure, stats in results:
-            writer.put(idx, np.broadcast_to(initial, target.shape), target, pressure,
-                       np.full(len(idx), plan.scenes[si].id))
-            touch += stats['touch']
+            saved = {k: os.environ.get(k) for k in _THREAD_VARS}
+            os.environ.update({k: '1' for k in _THREAD_VARS})   # one BLAS thread a worker
+            try:
+                pool = _context().Pool(workers, _init_worker, init)
+            finally:
+                for k, v in saved.items():
+                    if v is None:
+                        os.environ.pop(k, None)
+                    else:
+                        os.environ[k] = v
+            results = pool.imap_unordered(simulate_chunk, jobs)
+        for c, stats in results:
+            touching += stats['touching']
             replaced += stats['replaced']
-            iters += stats['iterations']
+            iters[c.start:c.stop] = stats['iterations']
             pen = max(pen, stats['max_penetration_m'])
-            bar.update(len(idx))
+            bar.update(c.stop - c.start)
         if pool is not None:
             pool.close()
             pool.join()
     except BaseException:
-        if workers > 1 and pool is not None:
+        if pool is not None:
             pool.terminate()
+        writer.abort()
         raise
     finally:
         bar.close()
-    summary = {'samples': n, 'contact_share': touch / n, 'replaced_failed_solves': replaced,
+    toward = plan.toward if plan.toward is not None else np.zeros(n, bool)
+    summary = {'samples': n, 'touching_share': touching / n,
+               'replaced_failed_solves': replaced,
                'median_newton_iterations': float(np.median(iters)),
-               'max_penetration_m': pen}
+               'max_penetration_m': pen, 'toward_share': float(np.mean(toward))}
+    distribution = {'min_gap_m': MIN_GAP_M, 'max_gap_m': MAX_GAP_M, 'gap_power': GAP_POWER,
+                    'toward_window_deg': math.degrees(TOWARD_WINDOW_RAD), 'chunk': chunk}
     ds = writer.close(
         source=source or 'softshape simulate', seed=plan.seed, cameras=list(views),
         config=cfg.source, scenes=[s.to_json() for s in plan.scenes],
         normalisation='pressure / max_pressure_pa', simulator=summary,
+        scene_distribution=distribution,
         dropped={'count': 0, 'why': 'failed solves are redrawn, counted in '
                  'simulator.replaced_failed_solves'})
-    return ds, summary
+    wall = time.perf_counter() - t0
+    return ds, dict(summary, workers=workers, wall_s=round(wall, 3),
+                    samples_per_s=round(n / wall, 1))
