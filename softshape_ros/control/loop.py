@@ -72,6 +72,7 @@ class ShapeLoop:
     max_iterations: int = 3
     trust: float = 1.0
     weights: CostWeights = CostWeights()
+    secant: bool = True
     plans: list = field(default_factory=list)
     observations: list = field(default_factory=list)
 
@@ -79,6 +80,7 @@ class ShapeLoop:
         self.objective = Objective(self.ctx, self.goal, self.weights)
         self._best = None           # (real cost, u, camera images) of the best command seen
         self._best_index = -1
+        self._tip_corrections = []  # (u, tip part of the correction) per observation
         self._trust = 0.0
 
     @property
@@ -145,8 +147,22 @@ class ShapeLoop:
         else:
             self._trust *= 2.0
         if not ok:
+            def model_at(u):
+                return self.forward(torch.from_numpy(u.astype(np.float32))[None])[0]
+            self._tip_corrections.append(
+                (last.u, self.objective.set_correction(images, model_at(last.u), last.u,
+                                                       keep=True)))
             _, u, seen = self._best
-            predicted = self.forward(torch.from_numpy(u.astype(np.float32))[None])[0]
-            self.objective.set_correction(seen, predicted, u)
+            c_best = self.objective.set_correction(seen, model_at(u), u)
             self.objective.anchor_at(u, self._trust)
+            if self.secant:
+                self.objective.set_tip_secant(u, self._secant(u, c_best))
         return obs
+
+    def _secant(self, u_best, c_best):
+        """Rank-1 slope of the tip correction between the best and another observed command."""
+        for u, c in reversed(self._tip_corrections):
+            du = torch.from_numpy((u - u_best).astype(np.float32))
+            if float(du.abs().max()) >= REPEAT_U:
+                return ((c - c_best)[:, None] * du[None, :] / du.square().sum()).numpy()
+        return None

@@ -102,6 +102,7 @@ class Objective:
             self.contact_mask = torch.from_numpy(m.astype(np.float32))
             self.contact_views = torch.from_numpy(seen)
         self.correction: torch.Tensor | None = None
+        self.tip_slope = None            # (u_ref, T x 6): the correction's secant, tip part
         self.anchor: torch.Tensor | None = None
         self.trust = 0.0
 
@@ -113,7 +114,8 @@ class Objective:
     def residuals(self, f: Features, u: torch.Tensor) -> torch.Tensor:
         """B x R residual vectors (their squared norm is the cost)."""
         w, b = self.w, f.y.shape[0]
-        parts = [w.tip * (f.tips - self.target_tip).reshape(b, -1) / TIP_SCALE_PX]
+        parts = [w.tip * (f.tips - self.target_tip).reshape(b, -1) / TIP_SCALE_PX
+                 + self._tip_secant(u)]
         if self.mask_t is not None:
             parts.append(w.silhouette * ((f.mask - self.mask_t) * self.mask_scale)
                          .reshape(b, -1))
@@ -148,6 +150,13 @@ class Objective:
             else overlap.new_zeros((b, 1))
         return self.w.contact * torch.relu(soft_min) / CONTACT_OVERLAP_PX
 
+    def _tip_secant(self, u: torch.Tensor) -> torch.Tensor:
+        """Return the tip correction's change away from where it was measured (B x 2V)."""
+        if self.tip_slope is None:
+            return u.new_zeros((u.shape[0], 1))
+        u_ref, slope = self.tip_slope
+        return (u - u_ref) @ slope.T
+
     def bank_cost(self, bank) -> torch.Tensor:
         """
         Score every bank entry: equal to :meth:`cost`, without forming residuals.
@@ -160,7 +169,8 @@ class Objective:
         n, v = bank.tips.shape[:2]
         corr = self.correction[0] if self.correction is not None else None
         at = 0
-        rt = w.tip * (bank.tips - self.target_tip).reshape(n, -1) / TIP_SCALE_PX
+        rt = w.tip * (bank.tips - self.target_tip).reshape(n, -1) / TIP_SCALE_PX \
+            + self._tip_secant(bank.u)
         if corr is not None:
             rt = rt + corr[:rt.shape[1]]
         at += rt.shape[1]
@@ -206,36 +216,46 @@ class Objective:
             # The tip as success judges it (the hard tip), offset into the soft frame.
             fr.tips = torch.from_numpy((hard - self.target_tip_hard).astype(np.float32)
                                        )[None] + self.target_tip
-        saved = self.correction, self.anchor
-        self.correction = self.anchor = None
+        saved = self.correction, self.anchor, self.tip_slope
+        self.correction = self.anchor = self.tip_slope = None
         try:
             return self.residuals(fr, ut)[:, :-6]
         finally:
-            self.correction, self.anchor = saved
+            self.correction, self.anchor, self.tip_slope = saved
 
     def real_cost(self, real: np.ndarray, u) -> float:
         """Score what the camera saw (no model involved): the loop's merit."""
         with torch.no_grad():
             return float(self._real_residual(real, u).square().sum())
 
-    def set_correction(self, real: np.ndarray, predicted: torch.Tensor, u) -> None:
+    def set_correction(self, real: np.ndarray, predicted: torch.Tensor, u,
+                       keep: bool = False) -> torch.Tensor:
         """
         Correct the model by what the camera saw at the same pressures ``u``.
 
         ``real``: V x C x S x S uint8 camera images; ``predicted``: the model's V x C x S x S
         [0, 1] images at ``u``. The tip part uses the real image's hard tip (what success is
-        judged by), so the loop drives exactly that error to zero.
+        judged by), so the loop drives exactly that error to zero. Returns the tip part of
+        the correction; ``keep``: only return it, the objective stays as it is.
         """
         with torch.no_grad():
             r_real = self._real_residual(real, u)
-            saved = self.correction, self.anchor
-            self.correction = self.anchor = None
+            saved = self.correction, self.anchor, self.tip_slope
+            self.correction = self.anchor = self.tip_slope = None
             try:
                 ut = torch.as_tensor(np.asarray(u, dtype=np.float32))[None]
                 r_model = self.residuals(self.features(predicted[None]), ut)[:, :-6]
             finally:
-                self.correction, self.anchor = saved
-        self.correction = (r_real - r_model).detach()
+                self.correction, self.anchor, self.tip_slope = saved
+        if not keep:
+            self.correction = (r_real - r_model).detach()
+        return (r_real - r_model)[0, :2 * self.ctx.views].detach().clone()
+
+    def set_tip_secant(self, u_ref, slope) -> None:
+        """Let the tip correction vary linearly with u around ``u_ref`` (a secant, T x 6)."""
+        self.tip_slope = None if slope is None else (
+            torch.as_tensor(np.asarray(u_ref, dtype=np.float32))[None],
+            torch.as_tensor(np.asarray(slope, dtype=np.float32)))
 
     def anchor_at(self, u, trust: float) -> None:
         """Keep re-plans near ``u`` (the last command): the correction is local."""
