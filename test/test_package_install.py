@@ -45,6 +45,8 @@ NODES = sorted(n for n, target in ENTRY_POINTS.items() if '.nodes.' in target)
 NODE_ARGS = {
     'inference': lambda request: ['--ros-args', '-p',
                                   f'model:={request.getfixturevalue("trained_checkpoint")}'],
+    'shape_controller': lambda request: [
+        '--ros-args', '-p', f'model:={request.getfixturevalue("trained_checkpoint")}'],
 }
 
 
