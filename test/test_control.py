@@ -13,7 +13,6 @@ import torch
 
 from softshape_ros.control import (Bank, Goal, GoalError, GoalSpec, Planner, PlannerConfig,
                                    SceneContext, ShapeLoop)
-from softshape_ros.control.features import far_end_tips
 from softshape_ros.control.forward import usable_limits
 from softshape_ros.control.goal import camera_to_model_px, model_to_camera_px
 from softshape_ros.control.objective import Objective
@@ -266,27 +265,6 @@ def test_camera_and_network_pixels_round_trip():
         assert 0 <= r <= 63 and 0 <= c <= 63
         np.testing.assert_allclose(model_to_camera_px(r, c, crop, 64), (u, v))
     assert camera_to_model_px(80.0, 0.0, crop, 64) == (0.0, 0.0)      # the corner pixel
-
-
-def test_far_end_tip_is_stable_where_the_furthest_pixel_jumps():
-    # A vertical bar with a round end, moved sideways in 0.1 px steps: the furthest pixel
-    # jumps along the cap with pixel rounding; the far-end tip follows the axis.
-    yy, xx = np.mgrid[0:64, 0:64]
-    far, furthest = [], []
-    shifts = np.linspace(-0.5, 0.5, 11)
-    for dx in shifts:
-        bar = (np.abs(xx - 32 - dx) <= 9) & (yy <= 40)
-        m = bar | ((xx - 32 - dx) ** 2 + (yy - 40) ** 2 <= 81)
-        base = np.array([[0.0, 32.0 + dx]])
-        far.append(far_end_tips(m[None, None], base)[0, 0])
-        d = np.where(m, np.hypot(yy, xx - 32 - dx), -1)
-        k = np.argmax(d)
-        furthest.append((yy.ravel()[k], xx.ravel()[k]))
-    far, furthest = np.array(far), np.array(furthest, dtype=float)
-    assert np.abs(far[:, 1] - 32 - shifts).max() < 0.6
-    assert np.abs(far[:, 0] - 49).max() < 2.0
-    jump = np.abs(furthest[:, 1] - 32 - shifts).max()
-    assert jump > np.abs(far[:, 1] - 32 - shifts).max()
 
 
 def test_tip_goal_json_and_camera_frames(trained_checkpoint):

@@ -20,7 +20,7 @@ from softshape_ros.control.forward import NetworkForward, usable_limits
 from softshape_ros.control.goal import Goal, GoalError, GoalSpec, camera_to_model_px
 from softshape_ros.control.loop import ShapeLoop, Tolerance
 from softshape_ros.control.planner import Bank, Planner, PlannerConfig
-from softshape_ros.hardware.pressure import CommandError, check_command
+from softshape_ros.pressure import CommandError, check_command
 from softshape_ros.vision.preprocess import ImageError, crop_for, preprocess
 
 

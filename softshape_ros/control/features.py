@@ -25,8 +25,6 @@ MASK_SOFTNESS = 8.0
 TIP_SOFTNESS_PX = 1.0
 #: How strongly the soft tip ignores pixels that are not robot (see :func:`soft_tips`).
 TIP_MASK_WEIGHT = 20.0
-#: The far-end tip averages the silhouette pixels this close to the largest distance.
-FAR_END_BAND_PX = 1.0
 #: A view shows the object if at least this many pixels of its rest image are object.
 MIN_OBJECT_PX = 12
 
@@ -78,25 +76,15 @@ class SceneContext:
 
     def tips(self, images: np.ndarray) -> np.ndarray:
         """Return the far-end tip of N x V x C x S x S images: N x V x 2 (row, col), NaN: none."""
-        return far_end_tips(self.masks(images), self.silhouette.base_rc)
-
-    def pixel_tips(self, images: np.ndarray) -> np.ndarray:
-        """Return the single furthest pixel (``softshape evaluate``'s tip), for comparison."""
         return self.silhouette.tips(images)
 
-    def score(self, images: np.ndarray, target_mask=None, target_tip=None,
-              target_pixel_tip=None) -> dict:
+    def score(self, images: np.ndarray, target_mask=None, target_tip=None) -> dict:
         """Hard tip error per view (px) and pooled silhouette IoU of one V x C x S x S set."""
         out = {}
         if target_tip is not None:
             tip = self.tips(images[None])[0]
             err = np.linalg.norm(tip - target_tip, axis=-1)
             out['tip_error_px'] = [float(e) if np.isfinite(e) else float('inf') for e in err]
-        if target_pixel_tip is not None:
-            tip = self.pixel_tips(images[None])[0]
-            err = np.linalg.norm(tip - target_pixel_tip, axis=-1)
-            out['pixel_tip_error_px'] = [float(e) if np.isfinite(e) else float('inf')
-                                         for e in err]
         if target_mask is not None:
             m = self.masks(images[None])[0]
             out['iou'] = iou(m, target_mask)
@@ -113,31 +101,6 @@ class SceneContext:
         d = torch.sqrt((rr[None] - base[:, 0, None, None]) ** 2
                        + (cc[None] - base[:, 1, None, None]) ** 2)
         return rr.expand(self.views, s, s), cc.expand(self.views, s, s), d
-
-
-def far_end_tips(masks: np.ndarray, base_rc: np.ndarray, band_px: float = FAR_END_BAND_PX):
-    """
-    N x V x S x S silhouettes -> N x V x 2 tips: the mean of the pixels at the far end.
-
-    The far end is every silhouette pixel within ``band_px`` of the largest distance from
-    the base. The single furthest pixel (``RobotSilhouette.tips``) is ill-posed on a rounded
-    end: its distance from the base falls only quadratically along the cap (about 0.6 px
-    over 4 px sideways for this robot), so pixel rounding moves that pixel by several pixels
-    between two nearly equal shapes. The band's mean sits on the end's axis, to sub-pixel.
-    """
-    n, v, s, _ = masks.shape
-    rr, cc = np.mgrid[0:s, 0:s].astype(np.float64)
-    out = np.full((n, v, 2), np.nan)
-    for j in range(v):
-        d = np.hypot(rr - base_rc[j, 0], cc - base_rc[j, 1])
-        for i in range(n):
-            m = masks[i, j]
-            if not m.any():
-                continue
-            dm = d[m]
-            far = dm >= dm.max() - band_px
-            out[i, j] = rr[m][far].mean(), cc[m][far].mean()
-    return out
 
 
 def object_masks(initial: np.ndarray, robot_threshold: float) -> np.ndarray:

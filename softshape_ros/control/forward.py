@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from softshape_ros.hardware.pressure import N_CHAMBERS
+from softshape_ros.pressure import N_CHAMBERS
 
 
 def usable_limits(rig_limits_pa, model_max_pa=None) -> np.ndarray:

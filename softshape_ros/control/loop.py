@@ -43,12 +43,10 @@ class Observation:
     success: bool
     pressures_pa: np.ndarray
     residual: float = float('nan')      # the camera images' cost (the loop's merit)
-    pixel_tip_error_px: list = field(default_factory=list)   # softshape evaluate's tip
 
     def to_dict(self) -> dict:
         return {'iteration': self.iteration, 'tip_error_px': self.tip_error_px,
                 'iou': self.iou, 'success': self.success, 'residual': self.residual,
-                'pixel_tip_error_px': self.pixel_tip_error_px,
                 'pressures_pa': [float(p) for p in self.pressures_pa]}
 
 
@@ -138,8 +136,7 @@ class ShapeLoop:
         score = self.objective.describe(images)
         ok = reached(score, self.goal.kind, self.tolerance)
         obs = Observation(self.iteration + 1, score.get('tip_error_px', []), score.get('iou'),
-                          ok, last.pressures_pa,
-                          pixel_tip_error_px=score.get('pixel_tip_error_px', []))
+                          ok, last.pressures_pa)
         self.observations.append(obs)
         cost = self.objective.real_cost(images, last.u)
         obs.residual = cost

@@ -68,18 +68,15 @@ class Objective:
             self.target_mask = ctx.masks(goal.target_images[None])[0]
             ref = self.target_images[None]
             self.target_tip_hard = ctx.tips(goal.target_images[None])[0]
-            self.target_pixel_tip = ctx.pixel_tips(goal.target_images[None])[0]
             self.target_tip = soft_tips(soft_mask_logits(ref, self.threshold), *self.grids)[0]
         elif goal.kind == 'silhouette':
             self.target_mask = goal.target_silhouette
             ref = mask_image(ctx, self.target_mask)
             self.target_tip_hard = ctx.tips(ref[None])[0]
-            self.target_pixel_tip = ctx.pixel_tips(ref[None])[0]
             y = torch.from_numpy(ref.astype(np.float32) / 255)[None]
             self.target_tip = soft_tips(soft_mask_logits(y, self.threshold), *self.grids)[0]
         else:
             self.target_tip_hard = goal.target_tip_rc.copy()
-            self.target_pixel_tip = None
             self.target_tip = torch.from_numpy(
                 self.target_tip_hard + tip_bias(ctx, self.target_tip_hard)).float()
         if np.any(~np.isfinite(self.target_tip_hard)):
@@ -264,8 +261,7 @@ class Objective:
 
     def describe(self, images: np.ndarray) -> dict:
         """Hard tip error per view and IoU of V x C x S x S uint8 images against the goal."""
-        return self.ctx.score(images, self.target_mask, self.target_tip_hard,
-                              self.target_pixel_tip)
+        return self.ctx.score(images, self.target_mask, self.target_tip_hard)
 
 
 def tip_bias(ctx: SceneContext, tips_hard: np.ndarray) -> np.ndarray:

@@ -30,7 +30,7 @@ from softshape_ros.control.features import SceneContextError
 from softshape_ros.control.goal import CONTACT_MODES, GoalError
 from softshape_ros.control.loop import Tolerance
 from softshape_ros.control.planner import PlannerConfig
-from softshape_ros.hardware.pressure import measured_in_order
+from softshape_ros.pressure import measured_in_order
 from softshape_ros.nodes.common import (ERROR, IMAGE_QOS, LATCHED_QOS, OK, RELIABLE_QOS,
                                         SENSOR_QOS, WARN, declare_rig_config, diagnostic_status,
                                         image_to_numpy, main_wrapper, ns_to_stamp,
