@@ -92,7 +92,8 @@ def rig(ros, trained_checkpoint):
     from softshape_ros.nodes.shape_controller import ShapeController
     cfg = load_rig_config()
     probe = Probe(ros, cfg)
-    mock = ros.add(MockHardware(parameter_overrides=[Parameter('tau_s', value=0.02)]))
+    mock = ros.add(MockHardware(parameter_overrides=[Parameter('tau_s', value=0.02),
+                                                     Parameter('free_run_hz', value=0.0)]))
 
     def start(**params):
         base = {'model': str(trained_checkpoint), 'bank_size': 48, 'lm_iterations': 3,
@@ -200,15 +201,15 @@ def test_bad_goals_are_refused_and_nothing_moves(rig, ros):
 def test_lost_camera_vents_and_reports_error(rig, ros):
     cfg, probe, mock, start = rig
     node = start(on_error='vent', frame_timeout_s=1.0)
-    real_snap = mock.rig.snap
+    real_render = mock.rig.render
     calls = []
 
-    def rest_only(p):                 # the cameras answer the rest trigger, then go silent
-        calls.append(p)
+    def rest_only(state):             # the cameras answer the rest trigger, then go silent
+        calls.append(state)
         if len(calls) > 1:
             raise RuntimeError('camera unplugged (injected)')
-        return real_snap(p)
-    mock.rig.snap = rest_only
+        return real_render(state)
+    mock.rig.render = rest_only
     probe.send_goal_images(goal_frames(cfg, P_GOAL))
     ros.wait_for(lambda: probe.results, timeout=60, what='the result')
     res = probe.results[-1]
