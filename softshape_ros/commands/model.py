@@ -94,10 +94,11 @@ def _distance_sweep(args) -> int:
 
 def register(sub) -> None:
     from softshape_ros.model.losses import LOSSES
+    from softshape_ros.model.networks import ARCHS
     p = sub.add_parser('train', help='train a forward model on a dataset (DDP under torchrun)')
     p.add_argument('--dataset', required=True, help='dataset folder')
     p.add_argument('--out', required=True, help='checkpoint folder to write')
-    p.add_argument('--arch', choices=('paper', 'ours'), default='ours')
+    p.add_argument('--arch', choices=ARCHS, default='ours')
     p.add_argument('--split', choices=('random', 'scene'), default='random',
                    help='validation rows: random 20%% (paper) or whole held-out scenes')
     p.add_argument('--seed', type=int, default=0)

@@ -301,9 +301,9 @@ class DatasetWriter:
             shapes.update(backbone_px=((len(views), shape, 2), 'float32'),
                           radius_px=((len(views), shape), 'float32'),
                           depth_px=((len(views), shape), 'float32'))
-        for name, (shape, dtype) in shapes.items():
+        for name, (dims, dtype) in shapes.items():
             # Header and size only: rows are mapped when written (DatasetRows.put).
-            mm = np.lib.format.open_memmap(self.tmp / f'{name}.npy', 'w+', dtype, (n, *shape))
+            mm = np.lib.format.open_memmap(self.tmp / f'{name}.npy', 'w+', dtype, (n, *dims))
             del mm
         self.rows = DatasetRows(self.tmp, n, shapes)
         self.contact = contact

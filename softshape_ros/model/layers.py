@@ -1,6 +1,7 @@
 """
-Building blocks shared by the networks: strided (transposed) convolutions, FiLM stages,
-coordinate planes.
+Building blocks shared by the networks.
+
+Strided (transposed) convolutions, FiLM stages, coordinate planes.
 """
 
 from __future__ import annotations
@@ -37,5 +38,3 @@ def coordinate_planes(b: int, h: int, w: int, like: torch.Tensor) -> torch.Tenso
     ys = torch.linspace(-1.0, 1.0, h, **kw).view(1, 1, h, 1).expand(b, 1, h, w)
     xs = torch.linspace(-1.0, 1.0, w, **kw).view(1, 1, 1, w).expand(b, 1, h, w)
     return torch.cat([xs, ys], 1)
-
-

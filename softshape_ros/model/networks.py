@@ -1,14 +1,14 @@
 """
-The forward models: the paper's encoder-decoder (the baseline), ours, and a pixel U-Net.
+The forward models: the paper's encoder-decoder (the baseline), ours, and the tube model.
 
 All map (initial images, normalised pressures) to the images at the actuation, in [0, 1]
 units: input ``image`` is B x (V*C) x 64 x 64 float, ``pressure`` is B x 6 (Pa / max Pa),
 output is B x (V*C) x 64 x 64. Views are stacked as channels (mono V=1, stereo V=2).
 Shapes in the comments: B batch, V views, C channels per view, S = 64 pixels.
 
-``ours`` (:class:`~softshape_ros.model.tube_net.TubeNet`) moves the robot: keypoints of its
-backbone drawn as a tube over the scene. ``unet`` regresses pixels (a FiLM U-Net, the
-previous ``ours``), kept as the design study's baseline of that approach.
+``ours`` (:class:`OursNet`) redraws pixels (a FiLM U-Net); ``tube``
+(:class:`~softshape_ros.model.tube_net.TubeNet`) moves the robot: keypoints of its backbone
+drawn as a tube over the scene (docs/model.md compares them).
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from softshape_ros.model.layers import Stage, coordinate_planes, down_conv, up_c
 from softshape_ros.model.tube_net import TubeNet
 
 N_PRESSURES = 6
-ARCHS = ('paper', 'ours', 'unet')
+ARCHS = ('paper', 'ours', 'tube')
 OUTPUTS = ('composite', 'residual')
 
 
@@ -54,7 +54,7 @@ class PaperNet(nn.Module):
         return self.head(self.decoder(z))                           # B x VC x S x S
 
 
-class PixelUNet(nn.Module):
+class OursNet(nn.Module):
     """
     U-Net with FiLM conditioning at every stage, drawing only what the actuation changes.
 
@@ -159,7 +159,7 @@ def build_network(arch: str, views: int, channels: int, **params) -> nn.Module:
     if arch == 'paper':
         return PaperNet(views * channels, **params)
     if arch == 'ours':
+        return OursNet(views, channels, **params)
+    if arch == 'tube':
         return TubeNet(views, channels, **params)
-    if arch == 'unet':
-        return PixelUNet(views, channels, **params)
     raise ValueError(f'unknown architecture {arch!r} (choose from {", ".join(ARCHS)})')

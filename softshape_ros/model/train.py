@@ -36,10 +36,10 @@ from softshape_ros.model.tube_net import TubeNet, rest_template
 
 # Adam learning rates, each network's best on the simulated stereo sets of the design
 # studies (docs/model.md), so the comparison is fair.
-DEFAULT_LR = {'paper': 1e-3, 'ours': 2e-3, 'unet': 4e-3}
-# The paper trains on MSE; so does the pixel U-Net (the silhouette term and Huber lost at
-# a fixed budget, docs/model.md); ours on keypoints and images (losses.TubeLoss).
-DEFAULT_LOSS = {'paper': 'mse', 'ours': 'tube', 'unet': 'mse'}
+DEFAULT_LR = {'paper': 1e-3, 'ours': 4e-3, 'tube': 2e-3}
+# The paper trains on MSE; so does ours (the silhouette term and Huber lost at a fixed
+# budget, docs/model.md); the tube model on keypoints and images (losses.TubeLoss).
+DEFAULT_LOSS = {'paper': 'mse', 'ours': 'mse', 'tube': 'tube'}
 
 
 def code_stamp() -> str:
@@ -151,7 +151,7 @@ def _train(dataset, config, out, indices, progress, desc, rank, world) -> TrainR
     loss_kind = config.loss or DEFAULT_LOSS.get(config.arch, 'mse')
     if loss_kind in ('tube', 'keypoints'):
         if not isinstance(net, TubeNet):
-            raise ValueError(f'the {loss_kind} loss trains ours, not {config.arch!r}')
+            raise ValueError(f'the {loss_kind} loss trains tube, not {config.arch!r}')
         objective = TubeLoss(keypoints_only=loss_kind == 'keypoints')
     else:
         objective = PixelLoss(ImageLoss(loss_kind, ds.channels, sil.threshold / 255,
@@ -211,7 +211,7 @@ def _network(ds, config, rows, sil):
     if config.init is None:
         params = dict(config.arch_params)
         truth = rows.train_shape[0]
-        if config.arch == 'ours' and truth is not None:
+        if config.arch == 'tube' and truth is not None:
             params.setdefault('keypoints', int(truth.shape[2]))
         net = build_network(config.arch, len(ds.views), ds.channels, **params)
         if isinstance(net, TubeNet):

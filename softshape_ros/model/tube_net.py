@@ -1,5 +1,5 @@
 """
-``ours``: a forward model that moves the robot instead of redrawing pixels.
+``tube``: a forward model that moves the robot instead of redrawing pixels.
 
 Per view it predicts K keypoints of the robot's backbone (x, y, radius, depth in px), draws
 the tube they describe with :mod:`~softshape_ros.model.tube_render` (sharp by
