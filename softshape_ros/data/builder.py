@@ -21,7 +21,7 @@ from rosbags.rosbag2 import Reader
 from tqdm import tqdm
 
 from softshape_ros.data.bag_tools import bag_info
-from softshape_ros.data.dataset import BAG_CONTACT, DatasetWriter
+from softshape_ros.data.dataset import BAG_CONTACT, BAG_SHAPE, DatasetWriter
 from softshape_ros.data.rosbag2_format import BagError, jazzy_typestore
 from softshape_ros.pressure import measured_in_order
 from softshape_ros.scene import Scene, SceneError
@@ -226,7 +226,8 @@ def build_dataset(bags, out, cfg, gray=None, overwrite: bool = False, progress: 
         'stamps_ns': [r[5] for r in rows],
     }
     w = DatasetWriter(out, len(rows), cams, channels, size, cfg.max_pressures_pa,
-                      meta=meta, overwrite=overwrite, contact=BAG_CONTACT)
+                      meta=meta, overwrite=overwrite, contact=BAG_CONTACT,
+                      shape=BAG_SHAPE)
     for i, (init, target, p, sid, _, _) in enumerate(
             tqdm(rows, desc='write dataset', unit='sample', disable=not progress)):
         w.put(i, init, target, p, sid)

@@ -50,6 +50,7 @@ CONTACT_ARRAYS = ('touching', 'contact_arc_m', 'contact_force_n', 'penetration_m
 NO_CONTACT_RECORD = 'not recorded: written before datasets carried a contact record'
 NOT_GIVEN = 'not recorded by the program that wrote this dataset'
 BAG_CONTACT = 'unknown: built from recorded bags (the rig does not measure contact)'
+BAG_SHAPE = "unknown: built from recorded bags (the rig does not measure the robot's backbone)"
 SHAPE_ARRAYS = ('backbone_px', 'radius_px', 'depth_px')
 NO_SHAPE_RECORD = 'not recorded: written before datasets carried a shape record'
 
@@ -421,6 +422,7 @@ def _load_shape(p: Path, meta: dict, n: int, views: int) -> ShapeRecord | None:
     if not present:
         if 'shape' not in meta:
             meta['shape'] = {'recorded': False, 'why': NO_SHAPE_RECORD}
+        log.info('%s: no shape record (%s)', p, meta['shape'].get('why'))
         return None
     if len(present) != len(SHAPE_ARRAYS):
         missing = sorted(set(SHAPE_ARRAYS) - set(present))

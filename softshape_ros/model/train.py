@@ -263,7 +263,10 @@ def _validate(net, val, extra, objective, chunk=256):
 
 def _fit(net, rows, objective, config, lr, rank, world, progress, desc) -> dict:
     """Run the optimisation: seeded batches, validation rounds, early stopping."""
-    model = torch.nn.parallel.DistributedDataParallel(net) if world > 1 else net
+    # The keypoint phase of the tube model leaves its drawing parts without gradients.
+    unused = bool(getattr(objective, 'keypoints_only', False))
+    model = (torch.nn.parallel.DistributedDataParallel(net, find_unused_parameters=unused)
+             if world > 1 else net)
     opt = torch.optim.Adam(net.parameters(), lr=lr)
     sched = torch.optim.lr_scheduler.LambdaLR(
         opt, lambda s: 0.5 * (1 + math.cos(math.pi * min(s, config.max_steps)

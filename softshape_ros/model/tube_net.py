@@ -34,7 +34,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from softshape_ros.model.layers import Stage, coordinate_planes, down_conv, up_conv
-from softshape_ros.model.tube_render import R, TubeField, TubeShader, coverage, tube_field
+from softshape_ros.model.tube_render import R, X, Y, TubeField, TubeShader, coverage, tube_field
 
 N_PRESSURES = 6
 KEYPOINTS = 16
@@ -95,7 +95,12 @@ class KeypointNet(nn.Module):
         super().__init__()
         self.views, self.k = views, keypoints
         out = views * keypoints * 4
-        self.register_buffer('template', torch.zeros(views, keypoints, 4))
+        # Until set_template: a straight tube down the middle of the image.
+        template = torch.zeros(views, keypoints, 4)
+        template[..., X] = 0.5 * size - 0.5
+        template[..., Y] = torch.linspace(0.1 * size, 0.9 * size, keypoints)
+        template[..., R] = size / 16
+        self.register_buffer('template', template)
         self.register_buffer('scale', torch.tensor(KEYPOINT_SCALE))
         self.register_buffer('centre_shift', torch.tensor([1.0, 1.0, 0.0, 0.0]))
         self.free = mlp(N_PRESSURES, 128, out)
@@ -265,7 +270,7 @@ class TubeNet(nn.Module):
         b, v, c, s = image.shape[0], self.views, self.channels, self.size
         field: TubeField = tube_field(keypoints, s)
         cov = coverage(field.sd).view(b, v, s, s)
-        depth = (field.depth / keypoints[:, :, :1, R]).view(b, v, s, s)   # in radii
+        depth = (field.depth / keypoints[:, :, :1, R].clamp_min(0.5)).view(b, v, s, s)  # radii
         logit = self.visibility(torch.cat([image, cov, depth * cov,
                                            coordinate_planes(b, s, s, image)], 1), cond)
         alpha = cov * torch.sigmoid(logit)                           # B x V x S x S
