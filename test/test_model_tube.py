@@ -60,7 +60,7 @@ def test_gradients_reach_every_keypoint():
         moved[0, 0, 1, 0] += eps
         f2 = tube_field(moved, 64)
         l2 = ((coverage(f2.sd) - target) ** 2).sum() + 1e-3 * (f2.nz * f2.depth).sum()
-    assert (float(l2) - float(loss)) / eps == pytest.approx(float(g[1, 0]), rel=0.05, abs=1e-3)
+    assert (float(l2) - float(loss.detach())) / eps == pytest.approx(float(g[1, 0]), rel=0.05, abs=1e-3)
 
 
 @pytest.fixture(scope='module')
@@ -168,3 +168,23 @@ def test_tube_network_shapes_and_seeded_start():
     torch.manual_seed(3)
     b = build_network('tube', 1, 1).state_dict()
     assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_tube_trains_under_torchrun_with_two_processes(simulated, tmp_path):
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+    bin_dir = Path(sys.executable).parent
+    proc = subprocess.run(
+        [str(bin_dir / 'torchrun'), '--standalone', '--nnodes', '1', '--nproc_per_node', '2',
+         str(bin_dir / 'softshape'), 'train', '--dataset', str(simulated.path), '--arch',
+         'tube', '--out', str(tmp_path / 'ck'), '--max-steps', '4', '--eval-every', '2',
+         '--batch-size', '8', '--threads', '1', '--quiet', '--rows', '60'],
+        env=dict(os.environ, OMP_NUM_THREADS='1'), capture_output=True, text=True,
+        timeout=240)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    lines = [ln for ln in proc.stdout.splitlines() if ln.startswith('{')]
+    assert len(lines) == 1 and json.loads(lines[0])['steps'] == 4
+    _, cfg = load_checkpoint(tmp_path / 'ck')
+    assert cfg['training']['world_size'] == 2 and cfg['training']['loss'] == 'tube'
