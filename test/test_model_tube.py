@@ -60,7 +60,8 @@ def test_gradients_reach_every_keypoint():
         moved[0, 0, 1, 0] += eps
         f2 = tube_field(moved, 64)
         l2 = ((coverage(f2.sd) - target) ** 2).sum() + 1e-3 * (f2.nz * f2.depth).sum()
-    assert (float(l2) - float(loss.detach())) / eps == pytest.approx(float(g[1, 0]), rel=0.05, abs=1e-3)
+    slope = (float(l2) - float(loss.detach())) / eps
+    assert slope == pytest.approx(float(g[1, 0]), rel=0.05, abs=1e-3)
 
 
 @pytest.fixture(scope='module')
