@@ -75,6 +75,7 @@ class TubeWeights:
     image: float = 20.0         # L1 of the composite from the predicted keypoints
     teacher: float = 20.0       # ... and from the true ones (background, visibility, shade)
     background: float = 20.0    # L1 of the background where the true robot is not
+    visibility: float = 1.0     # BCE of the visibility inside the true tube: is it dark?
 
 
 class TubeLoss:
@@ -84,11 +85,15 @@ class TubeLoss:
     ``truth``: B x V x K x 4 keypoints of the shape record, or None (recorded bags: the image
     term alone); ``free``: B bool, the samples touching nothing (None: unknown).
     ``keypoints_only``: the keypoint terms alone, nothing drawn (a fast first phase; the
-    image is then None).
+    image is then None). ``threshold``: the robot's luminance threshold ([0, 1] units; None:
+    no visibility term): inside the true tube the target shows the robot where it is
+    darker, the object where the object is in front.
     """
 
-    def __init__(self, weights: TubeWeights = TubeWeights(), keypoints_only: bool = False):
+    def __init__(self, weights: TubeWeights = TubeWeights(), keypoints_only: bool = False,
+                 threshold: float | None = None, channels: int = 1):
         self.w, self.keypoints_only = weights, keypoints_only
+        self.threshold, self.channels = threshold, channels
 
     def _keypoints(self, kp, free_kp, truth, free, dtype):
         w = self.w
@@ -117,6 +122,12 @@ class TubeLoss:
         m = clear[:, :, None].expand(b, v, t.shape[1] // v, s, s).reshape(t.shape)
         err = (out.background - t).abs()
         loss = loss + w.background * (err * m).sum() / m.sum().clamp_min(1)
+        if self.threshold is not None and w.visibility:
+            inside = (out.teacher_coverage >= 1.0).to(t.dtype)                 # B x V x S x S
+            robot = (luminance(t, self.channels) <= self.threshold).to(t.dtype)
+            bce = F.binary_cross_entropy_with_logits(out.teacher_visibility, robot,
+                                                     reduction='none')
+            loss = loss + w.visibility * (bce * inside).sum() / inside.sum().clamp_min(1)
         return loss, out.image
 
 

@@ -152,7 +152,8 @@ def _train(dataset, config, out, indices, progress, desc, rank, world) -> TrainR
     if loss_kind in ('tube', 'keypoints'):
         if not isinstance(net, TubeNet):
             raise ValueError(f'the {loss_kind} loss trains tube, not {config.arch!r}')
-        objective = TubeLoss(keypoints_only=loss_kind == 'keypoints')
+        objective = TubeLoss(keypoints_only=loss_kind == 'keypoints',
+                             threshold=sil.threshold / 255, channels=ds.channels)
     else:
         objective = PixelLoss(ImageLoss(loss_kind, ds.channels, sil.threshold / 255,
                                         config.silhouette_weight))

@@ -54,6 +54,7 @@ class TubeOutput(NamedTuple):
     alpha: torch.Tensor             # B x V x S x S: coverage x visibility
     teacher: torch.Tensor | None    # the composite drawn from the true keypoints, if given
     teacher_coverage: torch.Tensor | None   # B x V x S x S: the true keypoints' tube
+    teacher_visibility: torch.Tensor | None  # B x V x S x S logits: robot in front there
 
 
 def mlp(cin: int, hidden: int, cout: int, zero_last: bool = True) -> nn.Sequential:
@@ -266,7 +267,7 @@ class TubeNet(nn.Module):
         return c[1]
 
     def render(self, keypoints, image, background, cond):
-        """Compose the tube of ``keypoints`` over ``background``: (image, alpha, coverage)."""
+        """Compose the tube over ``background``: (image, alpha, coverage, visibility logits)."""
         b, v, c, s = image.shape[0], self.views, self.channels, self.size
         field: TubeField = tube_field(keypoints, s)
         cov = coverage(field.sd).view(b, v, s, s)
@@ -277,7 +278,7 @@ class TubeNet(nn.Module):
         shade = self.shader(field).view(b, v, c, s, s)
         a = alpha[:, :, None]
         out = a * shade + (1 - a) * background.view(b, v, c, s, s)
-        return out.view(b, v * c, s, s), alpha, cov
+        return out.view(b, v * c, s, s), alpha, cov, logit
 
     def forward(self, image: torch.Tensor, pressure: torch.Tensor,
                 truth: torch.Tensor | None = None, parts: bool = False):
@@ -292,8 +293,9 @@ class TubeNet(nn.Module):
         if parts == 'keypoints':
             return kp, free
         bg = self.scene_background(image)
-        out, alpha, _ = self.render(kp, image, bg, cond)
+        out, alpha, _, _ = self.render(kp, image, bg, cond)
         if not parts:
             return out
-        teacher, _, cov = (None,) * 3 if truth is None else self.render(truth, image, bg, cond)
-        return TubeOutput(out, kp, free, bg, alpha, teacher, cov)
+        teacher, _, cov, vis = (None,) * 4 if truth is None else self.render(
+            truth, image, bg, cond)
+        return TubeOutput(out, kp, free, bg, alpha, teacher, cov, vis)
