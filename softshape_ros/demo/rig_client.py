@@ -36,6 +36,7 @@ class RigClient(Participant):
         self.last_sample_stamp = None
         self.collector_failed = ''
         self.inference_state = ''
+        self.inference_scene = ''       # the scene inference last said it is on
         self.frames = {v: {} for v in self.views}
         self.predicted = {v: [] for v in self.views}
         self.measured = None
@@ -73,6 +74,8 @@ class RigClient(Participant):
                 self.collector_failed = st.message
             if 'inference' in st.name:
                 self.inference_state = st.message
+                self.inference_scene = next((kv.value for kv in st.values if kv.key == 'scene'),
+                                            '')
 
     def _on_measured(self, msg):
         self.measured = np.asarray(msg.effort, dtype=np.float64)
@@ -160,13 +163,15 @@ class RigClient(Participant):
         zeros = np.zeros(6)
         self.pub_scene.publish(String(data=json.dumps(scene)))
         self.pub_command.publish(Float64MultiArray(data=zeros.tolist()))
-        wait_until(lambda: 'waiting' in self.inference_state, 30.0,
-                   what='inference to take the new scene', processes=procs)
+        # Inference also says 'waiting' before any scene: wait for it to name this one.
+        sid = str(scene['id'])
+        wait_until(lambda: 'waiting' in self.inference_state and self.inference_scene == sid,
+                   30.0, what=f'inference to take scene {sid}', processes=procs)
         self._settle(zeros, procs)
         time.sleep(0.2)
         stamp = self._snap(procs, 'rest', scene['id'], zeros)
-        wait_until(lambda: self.inference_state == 'predicting', 30.0,
-                   what='inference to take the rest images', processes=procs)
+        wait_until(lambda: self.inference_state == 'predicting' and self.inference_scene == sid,
+                   30.0, what='inference to take the rest images', processes=procs)
         return self.prepared(stamp)
 
     def command_and_snap(self, pressures, procs):
