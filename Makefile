@@ -32,7 +32,9 @@ setup: build
 venv: $(VENV)/.stamp
 
 # Idempotent: re-running pip against satisfied pins is fast; the stamp skips it entirely.
-$(VENV)/.stamp: requirements.txt setup.py
+# setup.py makes every node file an entry point, so a new node needs the editable install
+# redone (its console-script metadata), hence the node files here.
+$(VENV)/.stamp: requirements.txt setup.py $(wildcard softshape_ros/nodes/*.py)
 	@test -x $(VPY) || $(PYTHON) -m venv $(VENV)
 	@touch $(VENV)/COLCON_IGNORE
 	set -o pipefail; $(VPY) -m pip install --disable-pip-version-check -q -r requirements.txt 2>&1 \

@@ -6,7 +6,7 @@ process holding, per camera, a best-effort subscription (the sensor-data profile
 and a reliable one (keep-last 5, like the recorder's), for {640x480, 1920x1080} x {publisher
 offered reliable, publisher best effort} x {Fast DDS defaults, config/fastdds.xml}. Reported
 per case: frames received / published per subscription kind, latency publish-to-callback
-(p50 / p99 / max ms), and each process's CPU share over the stream. Both processes configure
+(median / p99 / max ms), and each process's CPU share over the stream. Both processes configure
 their transport exactly as the nodes do (``configure_transport``), before ``rclpy.init``.
 """
 
@@ -21,6 +21,8 @@ import threading
 import time
 
 import numpy as np
+
+from benchmarks.bench_cameras import _stats   # n, median, p99, max (ms)
 
 RATE_HZ = 30.0
 SECONDS = 5.0
@@ -37,14 +39,6 @@ def _qos(kind: str):
 def _cpu_s() -> float:
     r = resource.getrusage(resource.RUSAGE_SELF)
     return r.ru_utime + r.ru_stime
-
-
-def _stats(values_ms) -> dict:
-    a = np.asarray(values_ms, dtype=np.float64)
-    if a.size == 0:
-        return {'n': 0}
-    return {'n': int(a.size), 'p50': round(float(np.median(a)), 2),
-            'p99': round(float(np.percentile(a, 99)), 2), 'max': round(float(a.max()), 2)}
 
 
 def _init_ros():

@@ -97,6 +97,10 @@ class TopicsConfig:
     predicted_image: str
     predicted_overlay: str
     diagnostics: str
+    goal_image: str = '/softshape/goal/{camera}/image_raw'
+    goal_silhouette: str = '/softshape/goal/{camera}/silhouette'
+    goal_tip: str = '/softshape/goal/tip'
+    goal_result: str = '/softshape/goal/result'
 
     def camera(self, template: str, camera: str) -> str:
         """Expand a per-camera template such as ``camera_image`` for ``main``."""
@@ -238,7 +242,7 @@ def _check_consistency(cfg: RigConfig) -> None:
         if math.sqrt(sum(v * v for v in d)) == 0.0:
             raise ConfigError(f'cameras.{name}.look_at_m: equals position_m')
     for tname in ('camera_image', 'camera_info', 'capture_time', 'predicted_image',
-                  'predicted_overlay'):
+                  'predicted_overlay', 'goal_image', 'goal_silhouette'):
         if '{camera}' not in getattr(cfg.topics, tname):
             raise ConfigError(f'topics.{tname}: must contain the placeholder {{camera}}')
 

@@ -1,7 +1,5 @@
 """BagWriter without ROS in the loop: splitting, compression, stored definitions, bad input."""
 
-import time
-
 import pytest
 import yaml
 from mcap.reader import make_reader
@@ -53,17 +51,20 @@ def test_split_by_size_every_file_readable(tmp_path, compression):
 
 def test_split_by_duration_and_on_request(tmp_path):
     bag = tmp_path / 'dur'
-    w = BagWriter(bag, max_duration_s=0.2)
+    now = [100.0]                        # the writer's steady clock, in seconds
+    w = BagWriter(bag, max_duration_s=0.2, clock=lambda: now[0])
     w.add_topic(TopicSpec.from_typestore('/h', 'std_msgs/msg/Header'))
     w.write('/h', 1, header(1))
-    time.sleep(0.25)
-    w.write('/h', 2, header(2))          # this write passes the duration: new file after it
-    w.write('/h', 3, header(3))
-    assert w.split()
+    now[0] += 0.15
+    w.write('/h', 2, header(2))          # 0.15 s: the same file
+    now[0] += 0.1
+    w.write('/h', 3, header(3))          # 0.25 s: this write passes the duration, new file after
     w.write('/h', 4, header(4))
+    assert w.split()
+    w.write('/h', 5, header(5))
     meta = w.close()['rosbag2_bagfile_information']
-    assert [f['message_count'] for f in meta['files']] == [2, 1, 1]
-    assert [int(d.frame_id[:5]) for _, _, d in mcap_messages(bag)[1]] == [1, 2, 3, 4]
+    assert [f['message_count'] for f in meta['files']] == [3, 1, 1]
+    assert [int(d.frame_id[:5]) for _, _, d in mcap_messages(bag)[1]] == [1, 2, 3, 4, 5]
 
 
 def test_type_missing_from_typestore_is_stored_from_its_class(tmp_path):

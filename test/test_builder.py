@@ -5,13 +5,13 @@ Two scenes, each a rest trigger and five actuations; five actuations are spoiled
 purpose (side frame never sent, capture skew too large, unsettled, a torn main frame, no
 measured pressure) and one /rig/sample message is not JSON. The recorder node records
 over real DDS; the builder must keep exactly the five good samples, pair each with the
-images and pressures published for its stamp, and count every drop by reason.
+images and pressures published for its stamp, and count every drop by reason. Messages
+go out back to back, with no pacing: the builder pairs by stamp, never by arrival time.
 """
 
 import json
 import subprocess
 import sys
-import time
 
 import numpy as np
 import pytest
@@ -22,6 +22,7 @@ from softshape_ros.data import load_dataset
 from softshape_ros.data.builder import build_dataset
 from softshape_ros.scene import Scene
 from softshape_ros.vision.preprocess import preprocess, scale_crop
+from waits import wait_matched
 
 W, H = 160, 120
 BASE_NS = 1_700_000_000 * 10**9
@@ -58,6 +59,8 @@ class RigPlayer:
                       for c in cfg.camera_names}
         self.capture = {c: n.create_publisher(TimeReference, t.camera('capture_time', c), qos)
                         for c in cfg.camera_names}
+        self.publishers = [self.scene, self.sample, self.trigger, self.pressure,
+                           *self.image.values(), *self.capture.values()]
         self.msgs = (Image, JointState, TimeReference, Header, String)
         self.sent = 0
         self.published = {}          # stamp -> {'pressure': [...], 'images': {cam: array}}
@@ -107,7 +110,6 @@ class RigPlayer:
             rec['images'][cam] = img
             self.sent += 2
         self.published[stamp] = rec
-        time.sleep(0.03)
 
 
 @pytest.fixture(scope='module')
@@ -125,7 +127,7 @@ def session(ros, cfg, tmp_path):
         Parameter('output', value=str(bag)), Parameter('discovery_period_s', value=0.1)]))
     ros.wait_for(lambda: set(player.topics()) <= set(rec.subs), timeout=20,
                  what='recorder to subscribe to the rig topics')
-    time.sleep(0.5)      # let the reliable matches complete both ways
+    wait_matched(ros, player.publishers, [rec.subs[t] for t in player.topics()])
     spoil = {2: dict(skip_cam='side'), 4: dict(skew_ns=50_000_000),
              7: dict(settled=False), 8: dict(torn_cam='main'), 9: dict(pressure=False)}
     player.sample.publish(player.msgs[4](data='{"stamp_ns": oops'))    # malformed JSON
@@ -136,7 +138,6 @@ def session(ros, cfg, tmp_path):
         player.send_scene(Scene(id=scene_id, object='cylinder',
                                 position_m=(0.01 * scene_id, 0.0, 0.02),
                                 dims={'radius_m': 0.005, 'height_m': 0.04}))
-        time.sleep(0.05)
         rest = BASE_NS + k * 10**9
         player.shoot(rest, scene_id, 'rest', 0, pressure=True)
         k += 1

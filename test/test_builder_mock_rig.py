@@ -47,9 +47,21 @@ def test_mock_rig_session_to_dataset(ros, tmp_path):
         max_fraction=0.5, seed=3, settle_timeout_s=5.0)))      # 5 s: busy CI machine
     ros.wait_for(col.done.is_set, timeout=90, what='collection session to finish')
     assert col.state == 'done', col.error
-    ros.wait_for(lambda: rec.recording.received[main_topic] >= col.samples, timeout=60,
-                 what='every trigger frame recorded')
-    time.sleep(0.5)
+    # Everything the builder reads for a trigger is at the recorder before the bag closes:
+    # the trigger, its record, each camera's frame and capture time, and the pressures.
+    t = cfg.topics
+    per_trigger = [t.trigger, t.sample] + [t.camera(k, c) for c in cfg.camera_names
+                                           for k in ('camera_image', 'capture_time')]
+    received = rec.recording.received
+    ros.wait_for(lambda: all(received[x] >= col.samples for x in per_trigger), timeout=60,
+                 what=lambda: f'{col.samples} of each per trigger: '
+                 f'{ {x: received[x] for x in per_trigger} }')
+    # The simulated rig samples a pressure at each trigger and publishes it before the frames,
+    # so before now: once a pressure published after now is in, so are they (one reliable
+    # stream, in order).
+    now_ns = time.time_ns()
+    ros.wait_for(lambda: rec.last_source_ns.get(t.pressure_measured, 0) > now_ns, timeout=20,
+                 what='a pressure published after the last frame at the recorder')
     rec.recording.stop()
 
     ds, report = build_dataset([bag], tmp_path / 'ds', cfg, progress=False)

@@ -8,6 +8,8 @@ import time
 import pytest
 from rclpy.parameter import Parameter
 
+from waits import wait_matched
+
 pytestmark = pytest.mark.ros
 
 
@@ -27,14 +29,16 @@ class Probe:
         self.images, self.infos, self.times, self.diags = [], [], [], []
         self.best_effort = []
         self.trigger_pub = self.node.create_publisher(Header, t.trigger, RELIABLE_QOS)
-        self.node.create_subscription(Image, t.camera('camera_image', camera),
-                                      lambda m: self._add(self.images, m), RELIABLE_QOS)
-        self.node.create_subscription(Image, t.camera('camera_image', camera),  # a viewer
-                                      lambda m: self._add(self.best_effort, m), SENSOR_QOS)
-        self.node.create_subscription(CameraInfo, t.camera('camera_info', camera),
-                                      lambda m: self._add(self.infos, m), RELIABLE_QOS)
-        self.node.create_subscription(TimeReference, t.camera('capture_time', camera),
-                                      lambda m: self._add(self.times, m), RELIABLE_QOS)
+        sub = self.node.create_subscription
+        self.subs = [        # what a camera publishes, received here
+            sub(Image, t.camera('camera_image', camera),
+                lambda m: self._add(self.images, m), RELIABLE_QOS),
+            sub(Image, t.camera('camera_image', camera),                # a viewer
+                lambda m: self._add(self.best_effort, m), SENSOR_QOS),
+            sub(CameraInfo, t.camera('camera_info', camera),
+                lambda m: self._add(self.infos, m), RELIABLE_QOS),
+            sub(TimeReference, t.camera('capture_time', camera),
+                lambda m: self._add(self.times, m), RELIABLE_QOS)]
         self.node.create_subscription(
             DiagnosticArray, t.diagnostics,
             lambda m: self._add(self.diags, [s for s in m.status
@@ -71,9 +75,11 @@ def _camera(ros, **params):
 
 
 def _wait_matched(ros, probe, node):
-    ros.wait_for(lambda: probe.trigger_pub.get_subscription_count() >= 1
-                 and node.pub_image.get_subscription_count() >= 1
-                 and node.pub_time.get_subscription_count() >= 1, what='discovery')
+    """Wait until the probe and the camera node matched, both ends of each pair."""
+    wait_matched(ros, [probe.trigger_pub], probe.subs)
+    trigger_sub = [s for s in node.subscriptions if s.topic_name == node.cfg.topics.trigger]
+    wait_matched(ros, [node.pub_info, node.pub_time], trigger_sub)
+    wait_matched(ros, [node.pub_image], count=2)          # the reliable and the viewer
 
 
 def _run_triggers(ros, probe, fps, n, rng):
@@ -84,7 +90,7 @@ def _run_triggers(ros, probe, fps, n, rng):
     for _ in range(n):
         sent.append(probe.trigger())
         ros.wait_for(lambda: len(probe.times) >= len(sent), timeout=5, what='capture time')
-        time.sleep(rng.uniform(0.01, 0.12))
+        time.sleep(rng.uniform(0.01, 0.12))     # pacing: triggers at random moments
     ros.wait_for(lambda: len(probe.images) >= n and len(probe.infos) >= n, timeout=5,
                  what='images')
     with probe.lock:
@@ -141,7 +147,7 @@ def test_vanished_folder_gives_error_then_recovers(ros, tmp_path):
     ros.wait_for(lambda: probe.last_level() == 2, what='diagnostics ERROR')
     assert 'no camera' in probe.diags[-1].message
     probe.trigger()                            # still gone: answered with nothing, no crash
-    time.sleep(0.5)
+    ros.wait_for(lambda: node.dropped == 2, what='the second trigger dropped')
     (tmp_path / 'gone').rename(folder)
     ros.wait_for(lambda: probe.last_level() == 0, what='diagnostics OK after recovery')
     back = probe.trigger()
@@ -177,19 +183,22 @@ def test_free_run_publishes_at_the_camera_rate_stamped_with_capture_time(ros, tm
     probe = Probe(ros)
     _camera(ros, source=str(folder), fps=20.0, free_run=True)
 
-    def frames_and_their_times():
-        # Image and capture time are two topics: a frame may arrive before its time does.
+    def seen():
         with probe.lock:
-            msgs = list(probe.images)
             times = {stamp_to_ns(m.header.stamp): stamp_to_ns(m.time_ref) for m in probe.times}
-        done = len(msgs) >= 8 and all(stamp_to_ns(m.header.stamp) in times for m in msgs)
-        return done and (msgs, times)
-    msgs, times = ros.wait_for(frames_and_their_times,
-                               what='free-run frames without triggers, with their capture times')
+            return list(probe.images), times
+    # A frame's capture time is published after it, on its own writer: count frames whose
+    # capture time is in too (frames sent before that writer matched the probe have none).
+    ros.wait_for(lambda: sum(stamp_to_ns(m.header.stamp) in seen()[1] for m in seen()[0]) >= 8,
+                 what='free-run frames without triggers, with their capture times')
+    msgs, times = seen()
     stamps = [stamp_to_ns(m.header.stamp) for m in msgs]
     assert stamps == sorted(stamps) and len(set(stamps)) == len(stamps)
+    paired = [s for s in stamps if s in times]
+    assert all(s in times for s in stamps if paired[0] <= s <= paired[-1])     # none lost
     for m, s in zip(msgs, stamps):
-        assert times[s] == s                   # free-run: the stamp is the capture time
+        if s in times:
+            assert times[s] == s               # free-run: the stamp is the capture time
         assert decode_index(image_to_numpy(m)) == int(s * 20.0 // 1_000_000_000) % 12
 
 
@@ -208,7 +217,7 @@ def test_pairs_over_the_skew_bound_are_flagged(ros, tmp_path):
                  and probe.trigger_pub.get_subscription_count() >= 2, what='side matched')
     for _ in range(5):
         probe.trigger()
-        time.sleep(0.05)
+        time.sleep(0.05)                       # pacing: triggers at 20 Hz
     ros.wait_for(lambda: main.skew.stats.count == 5, what='five pairs')
     assert main.skew.flagged == 5 and side.skew.flagged == 0    # each instance, its own bound
     ros.wait_for(lambda: probe.last_level() == 1, what='diagnostics WARN on main')
@@ -251,12 +260,14 @@ def test_under_sim_time_triggers_are_aged_and_captures_stamped_on_ros_time(ros, 
     from softshape_ros.nodes.common import ns_to_stamp, stamp_to_ns
     from softshape_ros.vision.patterns import write_video
     sim_ns = 5_000 * 10**9                                  # far from wall time
-    clock_pub = ros.node('sim_clock').create_publisher(Clock, '/clock', 10)
+    clock_node = ros.node('sim_clock')
+    clock_pub = clock_node.create_publisher(Clock, '/clock', 10)
+    # a simulator standing still: /clock at 50 Hz, always the same instant (best effort)
+    clock_node.create_timer(0.02, lambda: clock_pub.publish(Clock(clock=ns_to_stamp(sim_ns))))
     probe = Probe(ros)
     node = _camera(ros, source=str(write_video(tmp_path / 'c.avi', 12, fps=10.0)),
                    use_sim_time=True, max_trigger_age_s=0.5)
-    ros.wait_for(lambda: (clock_pub.publish(Clock(clock=ns_to_stamp(sim_ns))),
-                          time.sleep(0.02), node.get_clock().now().nanoseconds == sim_ns)[2], 10,
+    ros.wait_for(lambda: node.get_clock().now().nanoseconds == sim_ns, 10,
                  what='the node on sim time')
     _wait_matched(ros, probe, node)
     sent = probe.trigger(sim_ns)                         # a sim-time trigger is not late

@@ -7,6 +7,8 @@ import numpy as np
 import pytest
 from rclpy.parameter import Parameter
 
+from waits import wait_matched
+
 
 class Responder:
     """A bridge stand-in: first-order regulators at 100 Hz, optionally stuck at a fraction."""
@@ -46,10 +48,12 @@ class Responder:
             with self.lock:
                 where.append(value)
 
-        self.node.create_subscription(Float64MultiArray, t.pressure_command, on_cmd,
-                                      RELIABLE_QOS)
-        self.node.create_subscription(
-            Header, t.trigger, lambda m: on(self.triggers, stamp_to_ns(m.stamp)), RELIABLE_QOS)
+        self.subs = [
+            self.node.create_subscription(Float64MultiArray, t.pressure_command, on_cmd,
+                                          RELIABLE_QOS),
+            self.node.create_subscription(
+                Header, t.trigger, lambda m: on(self.triggers, stamp_to_ns(m.stamp)),
+                RELIABLE_QOS)]
         self.node.create_subscription(
             String, t.sample, lambda m: on(self.samples, json.loads(m.data)), RELIABLE_QOS)
         self.node.create_subscription(
@@ -132,11 +136,32 @@ def test_operator_mode_waits_for_next_scene_service(ros, tmp_path):
 
 @pytest.mark.ros
 def test_no_session_waits_idle(ros):
+    """
+    With no session the collector sends nothing, and an operator's ~/next_scene starts nothing.
+
+    Instead of watching nothing arrive for a while: with its publishers and the responder
+    matched at both ends, the collector answers ~/next_scene and then reports itself idle on
+    /diagnostics; anything it had sent before that report (in one process, delivered as it
+    is published) would have reached the responder by the time the report is read.
+    """
+    from diagnostic_msgs.msg import DiagnosticArray
+    from std_srvs.srv import Trigger
     resp = Responder(ros)
-    col = _collector(ros)
+    col = _collector(ros, **{'diagnostic_updater.period': 0.1})
     assert col.worker is None and col.state.startswith('idle')
-    import time
-    time.sleep(0.3)
+    wait_matched(ros, [col.pub_command, col.pub_trigger], resp.subs)
+    client = resp.node.create_client(Trigger, '/collector/next_scene')
+    assert client.wait_for_service(timeout_sec=5)
+    fut = client.call_async(Trigger.Request())
+    ros.wait_for(fut.done, what='service answer')
+    assert fut.result().success and 'idle' in fut.result().message
+    reports = []
+    resp.node.create_subscription(
+        DiagnosticArray, '/diagnostics',
+        lambda a: reports.extend(s.message for s in a.status if s.name == 'collector: session'),
+        10)
+    ros.wait_for(lambda: reports, what='the collector reporting on /diagnostics')
+    assert reports[-1] == 'idle: no session' and col.worker is None
     assert resp.triggers == [] and resp.commands == []
 
 

@@ -20,10 +20,12 @@ def test_tiny_demo_end_to_end_and_reuse(tmp_path):
     s = DemoSettings(out=str(tmp_path / 'demo'), scenes=2, actuations=4, rate_hz=4.0,
                      max_steps=20, finetune_steps=10, threads=1, live_scenes=1,
                      live_commands=3, seed=5)
+    s.control_goals, s.control_live, s.control_bank = 2, 1, 48     # the control stage
     report = run_demo(s)
     root = Path(s.out)
     text = report.read_text()
-    for section in ('## Recording', '## Dataset', '## Training', '## Evaluation', '## Live'):
+    for section in ('## Recording', '## Dataset', '## Training', '## Evaluation', '## Live',
+                    '## Control'):
         assert section in text
 
     # The bag, read with the independent mcap reader: one image per camera per trigger.
@@ -60,8 +62,19 @@ def test_tiny_demo_end_to_end_and_reuse(tmp_path):
     assert all(code == 0 for code in live['exit_codes'].values()), live['exit_codes']
     assert (root / 'live_panels.png').stat().st_size > 10_000
 
+    # The control stage: the evaluation ran all three methods on both goals, and the live
+    # loop over DDS gave a result for its goal (a 20-step model need not reach it).
+    ctl = json.loads((root / '.control.done.json').read_text())['result']
+    for m in ('model', 'random', 'oracle'):
+        assert 0.0 <= ctl['eval'][m]['success_rate'] <= 1.0
+    assert ctl['eval']['goals'] == 2
+    assert [r['state'] for r in ctl['live']['results']][0] in ('reached', 'not_reached')
+    assert all(code == 0 for code in ctl['live']['exit_codes'].values()), ctl['live']
+    for fig in ('control/control.png', 'control_live.png'):
+        assert (root / fig).stat().st_size > 10_000
+
     # A second run with the same settings reuses every stage.
-    before = {n: (root / f'.{n}.done.json').stat().st_mtime_ns for n in STAGES}
+    before = {n: (root / f'.{n}.done.json').stat().st_mtime_ns for n in STAGES + ('control',)}
     run_demo(s)
-    after = {n: (root / f'.{n}.done.json').stat().st_mtime_ns for n in STAGES}
+    after = {n: (root / f'.{n}.done.json').stat().st_mtime_ns for n in STAGES + ('control',)}
     assert before == after

@@ -1,6 +1,7 @@
 """The host link and the virtual Due, without ROS: clock mapping, handshake, faults."""
 
 import os
+import threading
 import time
 
 import numpy as np
@@ -41,13 +42,14 @@ def test_device_clock_restarts_after_a_firmware_reset():
 def test_link_refuses_when_nothing_answers(tmp_path):
     master, slave = os.openpty()                     # a serial port with a silent device
     try:
-        events = []
-        link = DueLink(os.ttyname(slave), LIM, on_event=lambda lv, t: events.append(t),
-                       backoff_s=(0.05, 0.1)).start()
-        deadline = time.monotonic() + 5
-        while time.monotonic() < deadline and not any('no hello reply' in e for e in events):
-            time.sleep(0.05)
-        assert any('no hello reply' in e for e in events), events
+        events, refused = [], threading.Event()
+
+        def on_event(level, text):
+            events.append(text)
+            if 'no hello reply' in text:
+                refused.set()
+        link = DueLink(os.ttyname(slave), LIM, on_event=on_event, backoff_s=(0.05, 0.1)).start()
+        assert refused.wait(10), events
         with pytest.raises(LinkDown, match='is down: no hello reply'):
             link.send_command([0] * 6)
         link.close()
@@ -58,8 +60,13 @@ def test_link_refuses_when_nothing_answers(tmp_path):
 
 def test_link_uses_the_lower_firmware_limits_and_measures_round_trips(tmp_path):
     with VirtualDue([100000, 150000, 150000, 150000, 150000, 50000], noise_pa=0) as vd:
-        states = []
-        link = DueLink(vd.path, LIM, on_state=states.append).start()
+        states, new_state = [], threading.Condition()
+
+        def on_state(m):
+            with new_state:
+                states.append(m)
+                new_state.notify_all()
+        link = DueLink(vd.path, LIM, on_state=on_state).start()
         assert link.wait_connected(5)
         assert link.limits_pa == [100000, 150000, 150000, 150000, 150000, 50000]
         for k in range(20):
@@ -69,8 +76,10 @@ def test_link_uses_the_lower_firmware_limits_and_measures_round_trips(tmp_path):
         assert vd.applied()[-1].setpoints_pa == (100000, 150000, 150000, 150000, 150000, 50000)
         st = link.status()
         assert st['acks'] == 21 and st['ack_rtt_p99_ms'] > 0
-        time.sleep(0.2)
-        assert states and all(np.all(s.pressures_pa <= 150000 + 1) for s in states)
+        with new_state:          # ten more states, measured under the clamped set-point
+            n = len(states)
+            assert new_state.wait_for(lambda: len(states) >= n + 10, 10), len(states)
+        assert all(np.all(s.pressures_pa <= 150000 + 1) for s in states)
         assert link.close()
         assert vd.applied()[-1].reason == 'vent'
 
@@ -88,23 +97,34 @@ def test_virtual_due_faults_are_visible_on_the_wire(tmp_path):
         ser = serial.Serial(vd.path, 115200, timeout=0.05)
         parser = P.FrameParser()
 
-        def read_states(seconds):
-            t_end, out = time.monotonic() + seconds, []
-            while time.monotonic() < t_end:
-                out += [f for f in parser.feed(ser.read(4096)) if f.type == P.T_STATE]
+        def read_until(done, timeout=10.0):
+            """Read states until ``done(states)``; each comes with the bad CRCs seen before it."""
+            deadline, out = time.monotonic() + timeout, []
+            while not done(out):
+                assert time.monotonic() < deadline, (len(out), parser.bad_crc)
+                out += [(P.decode(f), parser.bad_crc) for f in parser.iter_feed(ser.read(4096))
+                        if f.type == P.T_STATE]
             return out
 
-        assert len(read_states(0.3)) >= 15             # 100 Hz stream
+        def later(t_us, than_us):                      # on the Due's wrapping 32-bit clock
+            return 0 <= (t_us - than_us) & 0xFFFFFFFF < 1 << 31
+
+        clean = read_until(lambda s: len(s) >= 15)     # the state stream, in Due-time order
+        assert all(later(b.t_us, a.t_us) and b.t_us != a.t_us
+                   for (a, _), (b, _) in zip(clean, clean[1:]))
+        assert parser.bad_crc == 0                     # a clean line
         vd.corrupt_tx = 1.0                            # every write corrupted: nothing passes
-        read_states(0.05)                              # what was already on its way
         bad0 = parser.bad_crc
-        assert read_states(0.2) == [] and parser.bad_crc > bad0
+        got = read_until(lambda s: parser.bad_crc >= bad0 + 10)
+        assert all(bad == bad0 for _, bad in got)      # only what was on its way before it
         vd.corrupt_tx = 0.0
-        vd.stall(0.4)
-        read_states(0.05)
-        assert read_states(0.2) == []                  # frozen firmware: silence
-        time.sleep(0.3)
-        assert read_states(0.2)
+        read_until(lambda s: s)                        # good states again
+        start_us = vd.now_us()
+        vd.stall(0.4)                                  # frozen firmware: silence
+        end_us = (start_us + 400_000) & 0xFFFFFFFF
+        got = read_until(lambda s: s and later(s[-1][0].t_us, end_us))     # and it resumes
+        during = [st for st, _ in got if later(st.t_us, start_us) and not later(st.t_us, end_us)]
+        assert len(during) <= 1                        # the loop pass already under way
         vd.disconnect()
         assert not (tmp_path / 'due').exists()
         with pytest.raises(serial.SerialException):
@@ -113,7 +133,7 @@ def test_virtual_due_faults_are_visible_on_the_wire(tmp_path):
         ser.close()
         vd.reconnect(reset=True)
         ser = serial.Serial(vd.path, 115200, timeout=0.05)
-        assert read_states(0.2)
+        assert read_until(lambda s: s)
         ser.close()
 
 
@@ -157,9 +177,10 @@ def test_heartbeats_stop_when_the_host_stops_kicking():
         t_end = time.monotonic() + 1.0
         while time.monotonic() < t_end:        # a live host: kicks keep heartbeats going
             link.kick()
-            time.sleep(0.05)
+            time.sleep(0.05)                   # pacing: an executor's 20 Hz kicks
         assert vd.applied()[-1].reason == 'command'
-        time.sleep(1.0)                        # the host stops kicking
+        # the host stops kicking: the next change at the Due is the firmware's watchdog vent
+        assert vd.wait_applied(lambda log: log[-1].reason != 'command', 10)
         assert vd.applied()[-1].reason == 'watchdog'
         assert vd.applied()[-1].setpoints_pa == (0,) * 6
         link.close()
@@ -172,9 +193,7 @@ def test_feedback_fault_vents():
         assert link.wait_connected(5)
         assert link.wait_ack(link.send_command([30000.0] * 6), 1.0)
         vd.broken_sensors = {2}
-        deadline = time.monotonic() + 3.0
-        while time.monotonic() < deadline and vd.applied()[-1].reason != 'vent':
-            time.sleep(0.02)
+        assert vd.wait_applied(lambda log: log[-1].reason != 'command', 10)
         assert vd.applied()[-1].reason == 'vent'
         assert vd.applied()[-1].setpoints_pa == (0,) * 6
         assert any('feedback fault' in e for e in events)

@@ -134,6 +134,30 @@ def test_predictions_equal_offline_model_and_bad_input_publishes_nothing(rig, tr
     ros.wait_for(lambda: probe.n_predicted() >= 2, what='prediction for a query')
 
 
+def test_rest_sample_arriving_after_its_frames_is_still_taken(rig, ros):
+    """The sample comes from the collector, the frames from the cameras: either may be first."""
+    cfg, probe, node, _ = rig
+    scene = Scene(id=8, object='none')
+    probe.scene.publish(String(data=scene.to_json()))
+    ros.wait_for(lambda: node.awaiting_rest, what='inference to see the scene')
+    probe.sample.publish(String(data=json.dumps({          # samples are flowing
+        'stamp_ns': 1, 'scene_id': 8, 'kind': 'actuation', 'index': 0,
+        'command_pa': [0.0] * 6, 'settled': True})))
+    ros.wait_for(lambda: node.seen_samples, what='the first sample')
+    rest_ns = 3_000_000_000_000
+    h = Header()
+    h.stamp = ns_to_stamp(rest_ns)
+    probe.trigger.publish(h)                               # frames first ...
+    ros.wait_for(lambda: all(rest_ns in node.recent[v] for v in ('main', 'side')),
+                 timeout=20, what='the rest frames at the inference node')
+    assert not node.core.ready                             # not a rest stamp (yet)
+    probe.sample.publish(String(data=json.dumps({          # ... then the sample naming them
+        'stamp_ns': rest_ns, 'scene_id': 8, 'kind': 'rest', 'index': 0,
+        'command_pa': [0.0] * 6, 'settled': True})))
+    ros.wait_for(lambda: node.core.ready, what='initial images from the earlier frames')
+    assert not node.awaiting_rest
+
+
 def test_capture_initial_service(rig, ros):
     cfg, probe, node, _ = rig
     client = probe.node.create_client(Trigger, '/inference/capture_initial')

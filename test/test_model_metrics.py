@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from softshape_ros.model.metrics import (PSNR_MSE_FLOOR, RobotSilhouette, evaluate_arrays,
-                                         gaussian_window, intrusion, psnr, ssim, ssim_map)
+                                         far_end_tips, gaussian_window, intrusion, psnr, ssim,
+                                         ssim_map)
 
 BG, OBJ, ROBOT = 240, 190, 90
 
@@ -94,10 +95,32 @@ def test_metrics_split_into_touching_and_free():
     free, touch = res['free']['model'], res['touching']['model']
     assert free['rmse'] == 0 and free['silhouette_iou'] == 1.0 and free['ssim'] == 1.0
     assert touch['rmse'] > 0 and touch['silhouette_iou'] < 1.0
-    # row 3's tip 6 columns off (the tip is the centroid of the bar's far corner: ~6.8 px)
-    assert touch['tip_error_px'] == pytest.approx(6 / 2, abs=0.5)
+    # row 3's tip 6 columns off, a little more measured at the square end's far corner
+    # (far_end_tips: ~8.4 px); the other touching row is exact
+    assert 6 / 2 <= touch['tip_error_px'] <= 9 / 2
     assert res['free']['copy']['rmse'] == 0
     # The whole-set numbers pool both halves.
     assert touch['silhouette_iou'] < res['model']['silhouette_iou'] < 1.0
     with pytest.raises(ValueError, match='touching'):
         evaluate_arrays(initial, target, pred, sil, touching[:3])
+
+
+def test_far_end_tip_is_stable_where_the_furthest_pixel_jumps():
+    # A vertical bar with a round end, moved sideways in 0.1 px steps: the furthest pixel
+    # jumps along the cap with pixel rounding; the far-end tip follows the axis.
+    yy, xx = np.mgrid[0:64, 0:64]
+    far, furthest = [], []
+    shifts = np.linspace(-0.5, 0.5, 11)
+    for dx in shifts:
+        bar = (np.abs(xx - 32 - dx) <= 9) & (yy <= 40)
+        m = bar | ((xx - 32 - dx) ** 2 + (yy - 40) ** 2 <= 81)
+        base = np.array([[0.0, 32.0 + dx]])
+        far.append(far_end_tips(m[None, None], base)[0, 0])
+        d = np.where(m, np.hypot(yy, xx - 32 - dx), -1)
+        k = np.argmax(d)
+        furthest.append((yy.ravel()[k], xx.ravel()[k]))
+    far, furthest = np.array(far), np.array(furthest, dtype=float)
+    assert np.abs(far[:, 1] - 32 - shifts).max() < 0.6
+    assert np.abs(far[:, 0] - 49).max() < 2.0
+    jump = np.abs(furthest[:, 1] - 32 - shifts).max()
+    assert jump > np.abs(far[:, 1] - 32 - shifts).max()

@@ -16,6 +16,7 @@ import pytest
 
 from softshape_ros.config import load_rig_config
 from softshape_ros.hardware.virtual_due import VirtualDue
+from waits import call, round_trip
 
 pytestmark = pytest.mark.ros
 CFG = load_rig_config()
@@ -50,17 +51,14 @@ def test_stopping_the_node_vents(sig, reason, ros, tmp_path):
             for tid in (Transition.TRANSITION_CONFIGURE, Transition.TRANSITION_ACTIVATE):
                 req = ChangeState.Request()
                 req.transition.id = tid
-                fut = change.call_async(req)
-                ros.wait_for(fut.done, 30, what=f'transition {tid}')
-                assert fut.result().success, out_of(proc)
+                assert call(ros, change, req, f'transition {tid}').success, out_of(proc)
+            # Configured (the handshake is done by then) and active: a command is applied. Our
+            # publisher's match may be with a bridge process that is gone (still in the graph):
+            # the command is repeated until the Due applies it.
             cmd = [40000.0, 0, 20000, 0, 10000, 5000]
-            deadline = time.monotonic() + 20
-            while time.monotonic() < deadline:      # the link may still be handshaking
-                pub.publish(Float64MultiArray(data=cmd))
-                time.sleep(0.1)
-                log = vd.applied()
-                if log and log[-1].setpoints_pa == tuple(int(x) for x in cmd):
-                    break
+            round_trip(ros, lambda k: pub.publish(Float64MultiArray(data=cmd)),
+                       lambda: vd.applied()[-1].setpoints_pa == tuple(int(x) for x in cmd),
+                       'the command applied at the Due', timeout=20)
             assert vd.applied()[-1].reason == 'command', vd.applied()
             t_signal = time.monotonic()
             proc.send_signal(sig)

@@ -20,6 +20,7 @@ from rclpy.serialization import deserialize_message
 from std_srvs.srv import Trigger
 
 from softshape_ros.nodes.common import SENSOR_QOS, numpy_to_image, ns_to_stamp
+from waits import wait_matched
 
 RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 
@@ -63,10 +64,10 @@ def test_records_camera_rate_streams_mcap_roundtrip(ros, tmp_path):
     diags = []
     pub.create_subscription(DiagnosticArray, '/diagnostics', diags.append, 10)
     bag = tmp_path / 'cams'
-    rec = make_recorder(ros, output=str(bag))
+    rec = make_recorder(ros, output=str(bag), **{'diagnostic_updater.period': 0.2})
     want = {'/rig/camera_main/image_raw', '/rig/camera_side/image_raw', '/rig/trigger'}
     ros.wait_for(lambda: want <= set(rec.subs), timeout=20, what='subscriptions')
-    time.sleep(0.5)
+    wait_matched(ros, [main, side, trig], [rec.subs[t] for t in want])
     rng = np.random.default_rng(0)
     sent = {t: {} for t in want}
     t0 = time.time_ns()
@@ -84,15 +85,19 @@ def test_records_camera_rate_streams_mcap_roundtrip(ros, tmp_path):
             sent[topic][i] = m
         if i == n // 2:
             assert call(ros, pub, '/recorder/split_bagfile').success
-        time.sleep(1 / 30)
+        time.sleep(1 / 30)                         # pacing: a 30 Hz camera
     ros.wait_for(lambda: rec.recording.received['/rig/camera_main/image_raw'] >= n
                  and rec.recording.received['/rig/trigger'] >= n, timeout=20,
                  what='every reliable message at the recorder')
-    time.sleep(1.2)
-    statuses = [s for a in diags for s in a.status if s.name == 'recorder: bag']
-    assert statuses, 'no recorder diagnostics on /diagnostics'
-    kv = {k.key: k.value for k in statuses[-1].values}
-    assert int(kv['messages_written']) > 0 and kv['current_file'].startswith(str(bag))
+
+    def status():
+        statuses = [s for a in list(diags) for s in a.status if s.name == 'recorder: bag']
+        return {k.key: k.value for k in statuses[-1].values} if statuses else {}
+    # the writer thread reports on /diagnostics what it wrote: every reliable message
+    ros.wait_for(lambda: int(status().get('messages_written', 0)) >= 2 * n, timeout=20,
+                 what=lambda: f'recorder diagnostics with {2 * n} messages written: {status()}')
+    kv = status()
+    assert kv['current_file'].startswith(str(bag))
     assert kv['dropped_queue_full'] == '0'
     rec.recording.stop()
     t1 = time.time_ns()
@@ -128,12 +133,20 @@ def test_sqlite3_storage_pause_resume_and_topic_selection(ros, tmp_path):
                         topics=['/listed'], regex='^/extra/', exclude_regex='secret')
     ros.wait_for(lambda: {'/extra/stamps', '/listed'} <= set(rec.subs), timeout=20,
                  what='subscriptions')
-    time.sleep(0.5)
+    wait_matched(ros, [extra, listed], [rec.subs['/extra/stamps'], rec.subs['/listed']])
+    topics = ('/extra/stamps', '/listed')
+
+    def arrived(counts, n):
+        # each message of the phase reached the recorder before the next service call
+        ros.wait_for(lambda: all(counts[t] >= n for t in topics), timeout=10,
+                     what=lambda: f'{n} messages per topic: {dict(counts)}')
     recorded = []
     for i in range(30):
         if i == 10:
+            arrived(rec.recording.received, 10)
             assert call(ros, pub, '/recorder/pause').success
         if i == 20:
+            arrived(rec.recording.paused_skipped, 10)
             assert call(ros, pub, '/recorder/resume').success
         h = Header(frame_id=f'h{i}', stamp=ns_to_stamp(i))
         extra.publish(h)
@@ -141,11 +154,10 @@ def test_sqlite3_storage_pause_resume_and_topic_selection(ros, tmp_path):
         listed.publish(String(data=f'l{i}'))
         if not 10 <= i < 20:
             recorded.append(h)
-        time.sleep(0.01)
-    ros.wait_for(lambda: rec.recording.received['/extra/stamps'] >= 20, timeout=10,
-                 what='recorded messages')
-    time.sleep(0.3)
+    arrived(rec.recording.received, 20)
     rec.recording.stop()
+    assert dict(rec.recording.received) == {t: 20 for t in topics}
+    assert dict(rec.recording.paused_skipped) == {t: 10 for t in topics}
     assert '/extra/secret' not in rec.subs
     db = next(bag.glob('*.db3'))
     con = sqlite3.connect(db)
@@ -172,9 +184,9 @@ def test_qos_rematched_when_a_best_effort_publisher_joins(ros, tmp_path):
     late = pub.create_publisher(String, '/qos/mixed', SENSOR_QOS)
     ros.wait_for(lambda: rec.sub_qos['/qos/mixed'][1].reliability
                  == ReliabilityPolicy.BEST_EFFORT, timeout=20, what='QoS re-match')
-    ros.wait_for(lambda: late.get_subscription_count() > 0
-                 and reliable.get_subscription_count() > 0, timeout=10, what='both matched')
-    time.sleep(0.3)
+    wait_matched(ros, [reliable, late], [rec.subs['/qos/mixed']], timeout=10)
+    ros.wait_for(lambda: rec.subs['/qos/mixed'].get_publisher_count() >= 2, timeout=10,
+                 what='the recorder matched with both publishers')
     reliable.publish(String(data='from reliable'))
     late.publish(String(data='from best effort'))
     ros.wait_for(lambda: rec.recording.received['/qos/mixed'] >= 2, timeout=10,

@@ -8,10 +8,11 @@ than camera_trigger gets every frame of its 640x480 free run at 30 Hz (with Fast
 defaults it lost most of them: benchmarks/bench_transport.py).
 """
 
+import json
 import os
 import subprocess
 import sys
-import threading
+from pathlib import Path
 
 import pytest
 
@@ -74,58 +75,41 @@ def test_a_node_refuses_to_start_on_a_broken_user_profile(tmp_path):
 
 
 @pytest.mark.ros
-def test_best_effort_subscriber_in_another_process_gets_every_free_run_frame(ros, tmp_path):
+def test_best_effort_subscriber_in_another_process_gets_every_free_run_frame(tmp_path):
     """
     camera_trigger free-runs 640x480 RGB at 30 Hz in its own process (as ``ros2 run`` starts it).
 
-    Every frame it captured (its capture_time messages, reliable and small) must reach a
-    best-effort image subscription here: 60 in a row from the first frame received (before
-    that, discovery may not have matched the image writer with this reader yet).
+    A plain viewer in a third process (test/plain_image_subscriber.py: single-threaded spin,
+    sensor-data QoS, Fast DDS's defaults, not this package's profile) must receive every frame
+    the camera captured: 60 in a row from its first image. The publisher's profile is the fix
+    (its shared-memory segment holds a whole frame); with SOFTSHAPE_TRANSPORT_PROFILE=none
+    this fails. Not in this test process: its multi-threaded executor, hosting many nodes
+    across the suite, is a slower reader than a viewer and would measure itself.
     """
-    from sensor_msgs.msg import Image, TimeReference
-
     from softshape_ros.config import load_rig_config
-    from softshape_ros.nodes.common import RELIABLE_QOS, SENSOR_QOS, stamp_to_ns
     from softshape_ros.vision.patterns import write_folder
     t = load_rig_config().topics
     folder = write_folder(tmp_path / 'frames', 12, width=640, height=480)
-    node = ros.node('free_run_viewer')
-    lock = threading.Lock()
-    frames, captured = set(), []
-
-    def on_image(msg):
-        with lock:
-            frames.add(stamp_to_ns(msg.header.stamp))
-
-    def on_time(msg):
-        with lock:
-            captured.append(stamp_to_ns(msg.header.stamp))
-    node.create_subscription(Image, t.camera('camera_image', 'main'), on_image, SENSOR_QOS)
-    node.create_subscription(TimeReference, t.camera('capture_time', 'main'), on_time,
-                             RELIABLE_QOS)
+    plain = {k: v for k, v in os.environ.items() if k != PROFILE_ENV}
+    viewer = subprocess.Popen(
+        [sys.executable, str(Path(__file__).with_name('plain_image_subscriber.py')),
+         t.camera('camera_image', 'main'), t.camera('capture_time', 'main'), '60', '60'],
+        env=plain, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     cam = subprocess.Popen(
         [sys.executable, '-c', 'from softshape_ros.nodes.camera_trigger import main; main()',
          '--ros-args', '-p', 'camera_name:=main', '-p', f'source:={folder}',
          '-p', 'fps:=30.0', '-p', 'free_run:=true'],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
-        def window():
-            with lock:
-                return [s for s in captured if frames and s >= min(frames)][:60], set(frames)
-
-        def sixty_in_a_row_received():
-            stamps, got = window()
-            return len(stamps) == 60 and set(stamps) <= got
-
-        def state():
-            stamps, got = window()
-            return (f'60 captured frames in a row at the best-effort subscriber (captured '
-                    f'{len(captured)}, received {len(got)}, missing in the window '
-                    f'{len(set(stamps) - got)})')
-        ros.wait_for(sixty_in_a_row_received, 30, what=state)
+        seen, err = viewer.communicate(timeout=120)
     finally:
+        viewer.kill()
         cam.terminate()
         out, _ = cam.communicate(timeout=30)
+    assert viewer.returncode == 0, err
+    report = json.loads(seen.strip().splitlines()[-1])
+    assert len(report['window']) == 60, report         # 60 captured frames seen
+    assert report['missing'] == [], (f"{len(report['missing'])} of 60 captured frames never "
+                                     f"reached the viewer: {report}")
+    assert len(set(report['window'])) == 60             # distinct frames, none repeated
     assert cam.returncode == 0, out
-    stamps, _ = window()
-    assert len(set(stamps)) == 60                   # 60 distinct frames, none repeated

@@ -32,6 +32,12 @@ def register(sub) -> None:
                    help='unseen placements in the live stage')
     p.add_argument('--live-commands', type=int, default=d.live_commands,
                    help='commands per live placement')
+    p.add_argument('--control-goals', type=int, default=d.control_goals,
+                   help='control stage: goals for control-eval (model, random, oracle)')
+    p.add_argument('--control-live', type=int, default=d.control_live,
+                   help='control stage: goals closed over DDS by shape_controller (0: none)')
+    p.add_argument('--control-bank', type=int, default=d.control_bank,
+                   help='control stage: predictions per scene the planner starts from')
     p.add_argument('--seed', type=int, default=d.seed)
     p.add_argument('--fresh', action='store_true', help='redo every stage')
     p.set_defaults(func=_run)

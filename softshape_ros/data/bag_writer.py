@@ -15,6 +15,7 @@ import os
 import sqlite3
 import time
 from collections import defaultdict
+from collections.abc import Callable
 from importlib.metadata import version as _pkg_version
 from pathlib import Path
 
@@ -140,12 +141,14 @@ class BagWriter:
 
     ``path`` is the bag directory to create (must not exist); ``storage`` is ``mcap`` or
     ``sqlite3``; ``compression`` ``none`` or ``zstd`` (MCAP chunk compression); a new file
-    starts at ``max_bytes`` or after ``max_duration_s`` (0: never); ``fsync`` makes every
-    flush survive power loss too, not only a crash.
+    starts at ``max_bytes`` or after ``max_duration_s`` (0: never) on the steady ``clock``
+    (seconds; tests pass their own); ``fsync`` makes every flush survive power loss too,
+    not only a crash.
     """
 
     def __init__(self, path, storage: str = 'mcap', compression: str = 'none',
-                 max_bytes: int = 0, max_duration_s: float = 0.0, fsync: bool = False):
+                 max_bytes: int = 0, max_duration_s: float = 0.0, fsync: bool = False,
+                 clock: Callable[[], float] = time.monotonic):
         if storage not in STORAGES:
             raise BagError(f'storage must be one of {sorted(STORAGES)}, got {storage!r}')
         if compression not in COMPRESSIONS:
@@ -161,6 +164,7 @@ class BagWriter:
         self.compression = compression
         self.max_bytes, self.max_duration_ns = int(max_bytes), int(max_duration_s * 1e9)
         self.fsync = fsync
+        self.clock = clock
         self.topics: dict[str, TopicSpec] = {}
         self.file_counts: list[dict[str, int]] = []
         self.files: list[FileStats] = []
@@ -198,7 +202,7 @@ class BagWriter:
         self.file_counts.append(defaultdict(int))
         self._conns = {}
         self._added_types = set()
-        self._opened_at = time.monotonic()
+        self._opened_at = self.clock()
         for spec in self.topics.values():
             self._register(spec)
         # A bag that has a metadata.yaml from the start is readable even while recording.
@@ -255,7 +259,7 @@ class BagWriter:
         if self.max_bytes and self._file.size >= self.max_bytes:
             self.split()
         elif self.max_duration_ns and \
-                (time.monotonic() - self._opened_at) * 1e9 >= self.max_duration_ns:
+                (self.clock() - self._opened_at) * 1e9 >= self.max_duration_ns:
             self.split()
         return not self.failed
 

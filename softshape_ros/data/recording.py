@@ -35,6 +35,7 @@ class Recording:
         self._paused = False
         self._stop = False
         self.received = defaultdict(int)
+        self.paused_skipped = defaultdict(int)  # arrived while paused: not recorded
         self.drops = defaultdict(int)          # queue full
         self.refused = 0                       # arrived after the bag failed
         self.max_queue_seen = 0
@@ -49,7 +50,10 @@ class Recording:
     def offer(self, topic: str, stamp_ns: int, data) -> bool:
         """Queue one message; False (and counted) if paused, failed or the queue is full."""
         with self._cv:
-            if self._paused or self._stop:
+            if self._stop:
+                return False
+            if self._paused:
+                self.paused_skipped[topic] += 1
                 return False
             if self.error:
                 self.refused += 1
@@ -95,6 +99,7 @@ class Recording:
                 'messages_written': self.writer.message_count,
                 'bytes_written': self.writer.bytes_written,
                 'received': sum(self.received.values()),
+                'skipped_while_paused': sum(self.paused_skipped.values()),
                 'dropped_queue_full': sum(self.drops.values()),
                 'dropped_after_error': self.refused,
                 'queue_length': len(self._q),

@@ -25,6 +25,7 @@ import numpy as np
 import yaml
 
 from softshape_ros.config import load_rig_config
+from softshape_ros.demo import control_stage
 from softshape_ros.processes import NodeProcess, which_softshape
 
 STAGES = ('record', 'dataset', 'train', 'evaluate', 'live')
@@ -48,6 +49,9 @@ class DemoSettings:
     threads: int = 2
     live_scenes: int = 2
     live_commands: int = 8
+    control_goals: int = 8       # the control stage (demo/control_stage.py)
+    control_live: int = 4
+    control_bank: int = 384
     seed: int = 0
 
     def stage_key(self, stage: str) -> dict:
@@ -301,6 +305,7 @@ def run_demo(settings: DemoSettings, fresh: bool = False) -> Path:
             res = live(settings, stage, cfg, root / 'model')
         timings[name] = round(time.monotonic() - t0, 1)
         results[name] = stage.done(dict(res, seconds=timings[name]))
+    results['control'] = control_stage.run_stage(settings, cfg, root, run_tool, redo)
     from softshape_ros.demo.report import write_report
     report = write_report(root, settings, results, round(time.monotonic() - t_start, 1))
     banner(f'done: {report}')

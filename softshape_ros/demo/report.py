@@ -103,4 +103,6 @@ def write_report(root: Path, settings, results: dict, wall_s: float | None = Non
     lines += ['', '![live panels](live_panels.png)', '', f'Node logs: `{root / "logs"}`.', '']
     path = root / 'report.md'
     path.write_text('\n'.join(lines))
+    from softshape_ros.demo.control_stage import append_report   # the control stage
+    append_report(path, results.get('control'))
     return path

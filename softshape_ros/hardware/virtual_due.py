@@ -61,6 +61,7 @@ class VirtualDue:
         self.stats = {'rx_bytes': 0, 'tx_bytes': 0, 'rx_dropped': 0, 'tx_dropped': 0,
                       'rx_corrupted': 0, 'tx_corrupted': 0, 'tx_overflow': 0, 'connects': 0}
         self._lock = threading.RLock()
+        self._applied = threading.Condition(self._lock)     # notified at every log entry
         self._garbage = bytearray()
         self._stall_until = 0.0
         self._master = self._slave = None
@@ -82,6 +83,7 @@ class VirtualDue:
     def _on_apply(self, setpoints, reason, seq) -> None:
         with self._lock:
             self.log.append(Applied(time.monotonic(), tuple(setpoints), reason, seq))
+            self._applied.notify_all()
 
     def start(self) -> 'VirtualDue':
         self._open_pty()
@@ -164,6 +166,11 @@ class VirtualDue:
     def applied(self) -> list[Applied]:
         with self._lock:
             return list(self.log)
+
+    def wait_applied(self, predicate, timeout: float) -> bool:
+        """Wait until ``predicate(applied log)`` holds; False if ``timeout`` s pass first."""
+        with self._applied:
+            return bool(self._applied.wait_for(lambda: predicate(list(self.log)), timeout))
 
     def now_us(self) -> int:
         return (time.monotonic_ns() // 1000 + self._clock_offset) & 0xFFFFFFFF

@@ -131,8 +131,34 @@ def otsu_thresholds(values: np.ndarray) -> tuple[int, int]:
     return arg
 
 
-#: The tip is the centroid of the robot's pixels this close to its furthest one (px).
-TIP_BAND_PX = 2.0
+#: The tip is the mean of the robot's pixels this close to its largest distance from the base.
+TIP_BAND_PX = 1.0
+
+
+def far_end_tips(masks: np.ndarray, base_rc: np.ndarray, band_px: float = TIP_BAND_PX):
+    """
+    N x V x S x S silhouettes -> N x V x 2 tips (row, col): the mean of the far-end pixels.
+
+    The far end is every silhouette pixel within ``band_px`` of the largest distance from
+    the base. The single furthest pixel is ill-posed on a rounded end: its distance falls
+    only quadratically along the cap, so pixel rounding (or one anti-aliased pixel more
+    where an object's edge blends darker than the background) moves it by several pixels
+    between two nearly equal shapes. The band's mean sits on the end's axis, to sub-pixel.
+    NaN where a silhouette is empty.
+    """
+    n, v, s, _ = masks.shape
+    rr, cc = np.mgrid[0:s, 0:s].astype(np.float64)
+    out = np.full((n, v, 2), np.nan)
+    for j in range(v):
+        d = np.hypot(rr - base_rc[j, 0], cc - base_rc[j, 1])
+        dm = np.where(masks[:, j], d[None], -np.inf).reshape(n, -1)
+        far = dm.max(axis=1)
+        ok = np.isfinite(far)
+        band = dm >= (far - band_px)[:, None]
+        count = np.maximum(band.sum(axis=1), 1)
+        out[ok, j, 0] = (band @ rr.ravel())[ok] / count[ok]
+        out[ok, j, 1] = (band @ cc.ravel())[ok] / count[ok]
+    return out
 
 
 class RobotSilhouette:
@@ -190,28 +216,8 @@ class RobotSilhouette:
         return ndimage.binary_opening(mid, structure=np.ones((1, 1, 3, 3), bool))
 
     def tips(self, images) -> np.ndarray:
-        """
-        N x V x 2 tip (row, col); NaN where no robot pixel is seen.
-
-        The tip is the centroid of the robot pixels within ``TIP_BAND_PX`` of the furthest
-        one from the base, not that pixel alone: on the rounded, oblique tip the furthest
-        pixel jumps by several pixels when the outline gains or loses one anti-aliased pixel
-        (e.g. next to an object, whose edge blends darker than the background does).
-        """
-        m = self.mask(images)
-        n, v, s, _ = m.shape
-        rr, cc = np.mgrid[0:s, 0:s].astype(np.float64)
-        out = np.full((n, v, 2), np.nan)
-        for j in range(v):
-            d = np.hypot(rr - self.base_rc[j, 0], cc - self.base_rc[j, 1])
-            dm = np.where(m[:, j], d[None], -np.inf).reshape(n, -1)
-            far = dm.max(axis=1)
-            ok = np.isfinite(far)
-            band = (dm >= (far - TIP_BAND_PX)[:, None]) & np.isfinite(dm)
-            count = np.maximum(band.sum(axis=1), 1)
-            out[ok, j, 0] = (band * rr.ravel()).sum(axis=1)[ok] / count[ok]
-            out[ok, j, 1] = (band * cc.ravel()).sum(axis=1)[ok] / count[ok]
-        return out
+        """N x V x 2 tip (row, col) of the silhouettes (:func:`far_end_tips`); NaN: none."""
+        return far_end_tips(self.mask(images), self.base_rc)
 
     def to_json(self) -> dict:
         """Return the segmentation as JSON-able numbers (stored in checkpoints)."""

@@ -274,7 +274,8 @@ class CameraTrigger(Node):
             'frame_size': self.last_frame_size, 'calibration': self.calibration_path,
             'trigger_to_capture_ms': self.latency_capture.summary(),
             'trigger_to_publish_ms': self.latency_publish.summary(),
-            'pair_skew_ms': skew, 'pairs_over_bound': self.skew.flagged,
+            'pair_skew_ms': skew, 'last_pair_stamp_ns': self.skew.last_pair_stamp_ns,
+            'pairs_over_bound': self.skew.flagged,
             'skew_bound_ms': self.skew_bound_s * 1e3,
             'last_flagged_stamp_ns': self.skew.last_flagged_stamp_ns,
         }

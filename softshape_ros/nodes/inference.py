@@ -13,7 +13,7 @@ from __future__ import annotations
 import json
 import threading
 import time
-from collections import deque
+from collections import OrderedDict, deque
 
 import numpy as np
 from rclpy.node import Node
@@ -38,6 +38,10 @@ PARAMETERS = [
     Param('reliable_images', True, 'camera subscriptions reliable (false for best-effort '
           'cameras)'),
 ]
+
+
+#: Frames kept per view to pair with a rest sample that arrives after them.
+RECENT_FRAMES = 8
 
 
 class InferenceNode(Node):
@@ -66,6 +70,9 @@ class InferenceNode(Node):
         self.pub_overlay = {v: self.create_publisher(Image, t.camera('predicted_overlay', v),
                                                      IMAGE_QOS) for v in self.core.views}
         self.latest_frame: dict[str, np.ndarray] = {}
+        # The last few frames by stamp: a rest sample and its frames come from different
+        # publishers, and either may arrive first.
+        self.recent: dict[str, OrderedDict] = {v: OrderedDict() for v in self.core.views}
         self.rest_stamps: set[int] = set()
         self.seen_samples = False
         self.awaiting_rest = False
@@ -104,11 +111,17 @@ class InferenceNode(Node):
     def on_sample(self, msg: String) -> None:
         try:
             sample = json.loads(msg.data)
-            if sample.get('kind') == 'rest':
-                self.rest_stamps.add(int(sample['stamp_ns']))
+            rest = sample.get('kind') == 'rest'
+            stamp = int(sample['stamp_ns']) if rest else None
             self.seen_samples = True
-        except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
+        except (json.JSONDecodeError, KeyError, TypeError, ValueError, AttributeError) as exc:
             self.get_logger().warn(f'ignoring malformed /rig/sample: {exc}')
+            return
+        if rest:
+            self.rest_stamps.add(stamp)
+            for v, frames in self.recent.items():       # its frames may already be here
+                if stamp in frames:
+                    self.take_rest(v, stamp, frames[stamp])
 
     def on_image(self, view: str, msg: Image) -> None:
         try:
@@ -117,10 +130,16 @@ class InferenceNode(Node):
             self.get_logger().warn(f'{view}: dropping bad image: {exc}')
             return
         self.latest_frame[view] = frame
-        if not self.awaiting_rest:
-            return
         stamp = stamp_to_ns(msg.header.stamp)
-        if self.seen_samples and stamp not in self.rest_stamps:
+        recent = self.recent[view]
+        recent[stamp] = frame
+        while len(recent) > RECENT_FRAMES:
+            recent.popitem(last=False)
+        self.take_rest(view, stamp, frame)
+
+    def take_rest(self, view: str, stamp: int, frame: np.ndarray) -> None:
+        """Use ``frame`` as the view's initial image if the scene waits for it."""
+        if not self.awaiting_rest or (self.seen_samples and stamp not in self.rest_stamps):
             return
         try:
             self.core.set_initial(view, frame)

@@ -189,7 +189,14 @@ class MockHardware(Node):
             return self._advance(), sampled_ns
 
     def _log(self, level: str, message: str) -> None:
-        getattr(self.get_logger(), level)(message)
+        """Log at ``level``; one call site per severity (rclpy refuses a site that changes it)."""
+        logger = self.get_logger()
+        if level == 'info':
+            logger.info(message)
+        elif level in ('warn', 'warning'):
+            logger.warning(message)
+        else:
+            logger.error(message)
 
     def _publish_frames(self, f: Frames) -> None:
         stamp = ns_to_stamp(f.stamp_ns)

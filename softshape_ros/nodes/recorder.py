@@ -185,6 +185,9 @@ class Recorder(Node):
                                    flush_interval_s=p.flush_interval_s)
         self.subs = {}
         self.sub_qos = {}            # topic -> (message class, QoS profile in use)
+        # topic -> when the last message received was published (source timestamp, ns):
+        # everything one publisher sent before that instant has arrived (or was lost)
+        self.last_source_ns = {}
         self.skipped = {}            # topic -> why it is not recorded
         self.create_service(Trigger, '~/pause', self._pause)
         self.create_service(Trigger, '~/resume', self._resume)
@@ -266,9 +269,13 @@ class Recorder(Node):
     def _callback(self, topic: str):
         offer = self.recording.offer
         clock = self.get_clock()
+        last_source = self.last_source_ns
 
         def cb(data, info):
-            t = info.get('received_timestamp') if isinstance(info, dict) else None
+            t = None
+            if isinstance(info, dict):
+                t = info.get('received_timestamp')
+                last_source[topic] = info.get('source_timestamp', 0)
             offer(topic, t or clock.now().nanoseconds, data)
         return cb
 

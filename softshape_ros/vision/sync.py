@@ -58,6 +58,7 @@ class SkewTracker:
         self.flagged = 0
         self.incomplete = 0
         self.last_flagged_stamp_ns: int | None = None
+        self.last_pair_stamp_ns: int | None = None     # the trigger last paired
 
     def add(self, camera: str, stamp_ns: int, capture_ns: int):
         if camera not in self.cameras:
@@ -72,6 +73,7 @@ class SkewTracker:
         del self.pending[int(stamp_ns)]
         skew = (max(got.values()) - min(got.values())) / 1e9
         self.stats.add(skew)
+        self.last_pair_stamp_ns = int(stamp_ns)
         flagged = skew > self.bound_s
         if flagged:
             self.flagged += 1
