@@ -288,7 +288,7 @@ def simulate_chunk(job):
     target = np.empty((n, *initial.shape), np.uint8)
     pressure = np.empty((n, 6), np.float32)
     record = np.zeros((4, n))
-    stats = {'replaced': 0, 'iterations': np.empty(n, np.int32), 'failed': []}
+    stats = {'replaced': 0, 'crease': 0, 'iterations': np.empty(n, np.int32), 'failed': []}
     for k, p in enumerate(pressures):
         c0 = cpu()
         for attempt in range(MAX_RETRIES + 1):
@@ -311,6 +311,7 @@ def simulate_chunk(job):
         c = measure_contact(st, rig.obstacles)
         record[:, k] = (c.touching, c.arc_m, c.force_n, c.penetration_m)
         stats['iterations'][k] = st.iterations
+        stats['crease'] += st.crease
         c3 = cpu()
         spent['solve'] += c1 - c0
         spent['render'] += c2 - c1
@@ -398,7 +399,7 @@ def generate(cfg: RigConfig, plan: Plan, out, views, size: int = 64, gray: bool 
             for c in plan.chunks(chunk)]
     workers = max(1, min(len(jobs), workers or os.cpu_count() or 1))
     init = (cfg, writer.rows, size, gray, list(views), supersample, noise)
-    touching, replaced, pen, failed = 0, 0, 0.0, []
+    touching, replaced, crease, pen, failed = 0, 0, 0, 0.0, []
     spent = dict.fromkeys(CPU_PARTS, 0.0)
     iters = np.zeros(n, np.int32)
     bar = tqdm(total=n, desc='simulate', unit='sample', disable=not progress)
@@ -413,6 +414,7 @@ def generate(cfg: RigConfig, plan: Plan, out, views, size: int = 64, gray: bool 
         for c, stats in results:
             touching += stats['touching']
             replaced += stats['replaced']
+            crease += stats['crease']
             failed += stats['failed']
             iters[c.start:c.stop] = stats['iterations']
             pen = max(pen, stats['max_penetration_m'])
@@ -434,6 +436,7 @@ def generate(cfg: RigConfig, plan: Plan, out, views, size: int = 64, gray: bool 
     summary = {'samples': n, 'touching_share': touching / n,
                'replaced_failed_solves': replaced,
                'failed_solves': sorted(failed, key=lambda f: f['row'])[:100],
+               'crease_solves': crease,
                'median_newton_iterations': float(np.median(iters)),
                'max_penetration_m': pen, 'toward_share': float(np.mean(toward))}
     distribution = {'min_gap_m': MIN_GAP_M, 'max_gap_m': MAX_GAP_M, 'gap_power': GAP_POWER,

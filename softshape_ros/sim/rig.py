@@ -57,6 +57,7 @@ class SimState:
     iterations: int
     contacts: list = field(default_factory=list)
     max_penetration_m: float = 0.0
+    crease: bool = False            # converged by the crease test (statics.CREASE_MOTION_M)
 
     @property
     def backbone(self) -> np.ndarray:
@@ -70,7 +71,7 @@ class SimState:
                 's_m': self.s_m.tolist(), 'backbone_m': self.backbone_m.tolist(),
                 'residual': self.residual, 'iterations': self.iterations,
                 'contacts': [c.to_dict() for c in self.contacts],
-                'max_penetration_m': self.max_penetration_m}
+                'max_penetration_m': self.max_penetration_m, 'crease': self.crease}
 
 
 def chamber_actuators(cfg: RigConfig) -> list[Actuator]:
@@ -198,18 +199,21 @@ class SimRig:
 
         Attempts (``STIFFENING_STAGES``): direct from ``q0``; from ``q0`` with the penalty at
         1/10 first; from the straight rod with 1/100, 1/10, 1; then all of them again with
-        ``FINE_QUADRATURE`` times the Gauss nodes. Returns (q, assembly, iterations, the rod
-        solved on); the last failure raises :class:`SolverError`.
+        ``FINE_QUADRATURE`` times the Gauss nodes; only then, at the rig's quadrature, the
+        same stages with the crease test (``statics.CREASE_MOTION_M``). Returns (q,
+        assembly, iterations, the rod solved on); the last failure raises
+        :class:`SolverError`.
         """
         its, error = 0, None
-        for fine in (False, True):
+        for fine, crease in ((False, False), (True, False), (False, True)):
             rod, statics = self._fine_model() if fine else (self.rod, self.statics)
             for start, stages in STIFFENING_STAGES:
                 q = q0 if start == 'touching' else None
                 try:
                     for f in stages:
                         q, asm, it = statics.solve(p, q0=q, contact=self.contact.scaled(f),
-                                                   tol=STAGE_TOL if f < 1 else 1e-10)
+                                                   tol=STAGE_TOL if f < 1 else 1e-10,
+                                                   crease=crease)
                         its += it
                     return q, asm, its, rod
                 except SolverError as exc:
@@ -281,7 +285,8 @@ class SimRig:
                         iterations=int(it),
                         contacts=contact.contacts if contact is not None else [],
                         max_penetration_m=(contact.max_penetration_m
-                                           if contact is not None else 0.0))
+                                           if contact is not None else 0.0),
+                        crease=asm.crease)
 
     def _noisy(self, img: np.ndarray) -> np.ndarray:
         if self.image_noise_std > 0:
