@@ -46,11 +46,17 @@ LOAD_TOL_M = 1e-12        # point loads may act this far past the tip (round-off
 # root of the shape's motion, so the residual has no Lipschitz bound there. Newton's step from
 # one side lands in the other with the residual tens of times larger, and the merit falls
 # along no step at all, microns from the equilibrium. Where no strict solve converges, a
-# state where the line search finds no acceptable step, whose Newton correction moves no
-# backbone point more than a quarter of the contact's smoothing length and whose residual is
-# within CREASE_TOL, is taken (``Assembly.crease`` says so; the states report their residual).
+# state where the line search finds no acceptable step (or only tiny ones, TINY_STEPS),
+# whose Newton correction moves no backbone point more than a quarter of the contact's
+# smoothing length and whose residual is within CREASE_TOL, is taken (``Assembly.crease``
+# says so; the states report their residual).
 CREASE_MOTION_M = 5e-6
 CREASE_TOL = 1e-3
+# Steps this short, this many times in a row, are a stall: the attempt ends there (its load
+# bisection or the next stage follows) instead of spending its iterations, each a full line
+# search, on steps that do not move it.
+TINY_STEP = 1.0 / 256
+TINY_STEPS = 3
 
 
 class SolverError(RuntimeError):
@@ -343,7 +349,7 @@ class Statics:
         # Trust radius on the predicted motion of the backbone (m): with an object near,
         # a full Newton step from a free shape would dive deep into it.
         radius = TRUST_START_M if contact is not None else np.inf
-        mu = 0.0
+        mu, tiny = 0.0, 0
         for it in range(1, max_iter + 1):
             rn = asm.residual_norm
             if not np.isfinite(rn):
@@ -355,7 +361,8 @@ class Statics:
                 return NewtonResult(False, q, asm, it)
             dq, mu, move = step
             alpha, trial = self._line_search(q, dq, asm, mu, trial_at)
-            if trial is None:
+            tiny = tiny + 1 if alpha < TINY_STEP else 0
+            if trial is None or tiny >= TINY_STEPS:
                 # Stalled at round-off level, or on a crease: accept a nearly converged state.
                 ok = rn <= STALL_TOL * asm.scale + RESIDUAL_FLOOR
                 if not ok and crease and move <= CREASE_MOTION_M \
