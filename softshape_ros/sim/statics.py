@@ -47,11 +47,13 @@ LOAD_TOL_M = 1e-12        # point loads may act this far past the tip (round-off
 # one side lands in the other with the residual tens of times larger, and the merit falls
 # along no step at all, microns from the equilibrium. Where no strict solve converges, a
 # state where the line search finds no acceptable step (or only tiny ones, TINY_STEPS),
-# whose Newton correction moves no backbone point more than a quarter of the contact's
-# smoothing length and whose residual is within CREASE_TOL, is taken (``Assembly.crease``
-# says so; the states report their residual).
-CREASE_MOTION_M = 5e-6
-CREASE_TOL = 1e-3
+# whose Newton correction moves no backbone point more than the contact's smoothing length
+# (the penalty does not resolve the surface finer) and whose residual is within CREASE_TOL
+# (where the contact jumps between the tip and a point before it, the force's jump is up to
+# 4e-3 of the largest load), is taken (``Assembly.crease`` says so; the states report their
+# residual).
+CREASE_MOTION_M = 2e-5
+CREASE_TOL = 1e-2
 # Steps this short, this many times in a row, are a stall: the attempt ends there (its load
 # bisection or the next stage follows) instead of spending its iterations, each a full line
 # search, on steps that do not move it.
