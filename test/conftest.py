@@ -100,13 +100,14 @@ def ros(rclpy_session):
         def node(self, name):
             return self.add(rclpy_session.create_node(name))
 
-        def wait_for(self, predicate, timeout: float = 10.0, what='condition'):
+        def until(self, predicate, timeout: float):
             """
-            Return ``predicate()`` once true; fail the test with ``what`` past the deadline.
+            Return ``predicate()`` once true, or None after ``timeout`` (unscaled) seconds.
 
-            ``what`` may be a callable, called at the deadline to say what was seen instead.
+            Re-checked after every executor iteration; a timeout is an answer here, not a
+            failure (for retrying something that may legitimately be lost).
             """
-            deadline = time.monotonic() + timeout * TIMEOUT_SCALE
+            deadline = time.monotonic() + timeout
             with self.changed:
                 while True:
                     value = predicate()
@@ -114,9 +115,20 @@ def ros(rclpy_session):
                         return value
                     left = deadline - time.monotonic()
                     if left <= 0:
-                        pytest.fail(f'timed out after {timeout * TIMEOUT_SCALE:.1f} s '
-                                    f'waiting for {what() if callable(what) else what}')
+                        return None
                     self.changed.wait(min(left, 0.1))
+
+        def wait_for(self, predicate, timeout: float = 10.0, what='condition'):
+            """
+            Return ``predicate()`` once true; fail the test with ``what`` past the deadline.
+
+            ``what`` may be a callable, called at the deadline to say what was seen instead.
+            """
+            value = self.until(predicate, timeout * TIMEOUT_SCALE)
+            if not value:
+                pytest.fail(f'timed out after {timeout * TIMEOUT_SCALE:.1f} s '
+                            f'waiting for {what() if callable(what) else what}')
+            return value
 
         def close(self):
             self._stop.set()

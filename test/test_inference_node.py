@@ -105,6 +105,12 @@ def test_predictions_equal_offline_model_and_bad_input_publishes_nothing(rig, tr
     ros.wait_for(lambda: node.core.ready, timeout=20, what='initial images from the rest frames')
     ros.wait_for(lambda: all(rest_ns in probe.camera[v] for v in ('main', 'side')),
                  what='the probe to see the rest frames too')
+    # Diagnostics name the scene the initial images are of (a client tells a stale
+    # 'waiting' from before the scene from one after it).
+    from softshape_ros.nodes.diagnostics import DiagnosticStatusWrapper
+    stat = node.report(DiagnosticStatusWrapper())
+    assert stat.message == 'predicting'
+    assert {kv.key: kv.value for kv in stat.values}['scene'] == '7'
 
     # Bad requests: wrong length, NaN, beyond limits -> nothing published, node stays up.
     before = node.counts['rejected']

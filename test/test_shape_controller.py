@@ -122,7 +122,7 @@ def network_images(cfg, frames_by_view):
 
 def test_loop_runs_out_of_iterations_and_holds_the_best_command(rig, ros, trained_checkpoint):
     cfg, probe, mock, start = rig
-    node = start(tip_tolerance_px=0.0, iou_tolerance=1.01)        # unreachable on purpose
+    node = start(tip_tolerance_px=0.0, iou_tolerance=1.0)         # unreachable on purpose
     probe.send_goal_images(goal_frames(cfg, P_GOAL))
     ros.wait_for(lambda: probe.results, timeout=60, what='the result')
     res = probe.results[-1]

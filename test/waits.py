@@ -17,22 +17,8 @@ from conftest import TIMEOUT_SCALE
 
 
 def until(ros, predicate, timeout: float):
-    """
-    Return ``predicate()`` once true, or None after ``timeout`` (unscaled) seconds.
-
-    Like ``ros.wait_for`` (re-checked after every executor iteration) but a timeout is an
-    answer, not a failure: for retrying something that may legitimately be lost.
-    """
-    deadline = time.monotonic() + timeout
-    with ros.changed:
-        while True:
-            value = predicate()
-            if value:
-                return value
-            left = deadline - time.monotonic()
-            if left <= 0:
-                return None
-            ros.changed.wait(min(left, 0.1))
+    """Return ``predicate()`` once true, or None after ``timeout`` (unscaled) seconds."""
+    return ros.until(predicate, timeout)
 
 
 def _endpoints(publishers, subscriptions):

@@ -149,11 +149,11 @@ def evaluate_control(predictor, cfg: RigConfig, settings: EvalSettings, out_dir=
     limits = np.asarray(cfg.max_pressures_pa, dtype=np.float64)
     goals = make_goals(cfg, settings.goals, settings.seed, views, spec.size,
                        spec.channels == 1, settings.goals_per_scene, progress)
-    planner = Planner(settings.planner)
     methods = [m for m in METHODS if m in settings.methods]
     if 'random' in methods and 'model' not in methods:
         raise ValueError('random search takes its budget from the model planner: '
                          'run "model" too')
+    planner = Planner(settings.planner)
     rows = {m: [] for m in methods}
     banks: dict = {}
     build_ms = {m: [] for m in methods if m != 'random'}
@@ -165,64 +165,79 @@ def evaluate_control(predictor, cfg: RigConfig, settings: EvalSettings, out_dir=
         goal = Goal.images(spec, g.images, contact)
         plant = SimForward(cfg, g.scene, views, limits, spec.size, spec.channels == 1)
         net = NetworkForward(predictor, g.rest, limits)
-        key = g.scene.id
-        if key not in banks:
+        if g.scene.id not in banks:
             # One scene at a time: its banks are dropped when the next scene starts.
-            banks = {key: {}}
-            if 'model' in methods:
-                banks[key]['model'] = Bank.for_scene(net, ctx, settings.planner.bank_size,
-                                                     settings.planner.seed)
-                build_ms['model'].append(banks[key]['model'].build_ms)
-            if 'oracle' in methods:
-                sim = SimForward(cfg, g.scene, views, limits, spec.size, spec.channels == 1)
-                banks[key]['oracle'] = (Bank.for_scene(sim, ctx, settings.planner.bank_size,
-                                                       settings.planner.seed), sim)
-                build_ms['oracle'].append(banks[key]['oracle'][0].build_ms)
+            banks = {g.scene.id: _scene_banks(methods, net, ctx, cfg, g.scene, views, limits,
+                                              spec, settings, build_ms)}
+        bank = banks[g.scene.id]
         for m in methods:
             t0 = time.perf_counter()
             if m == 'model':
-                loop = ShapeLoop(net, ctx, goal, planner, banks[key]['model'],
+                loop = ShapeLoop(net, ctx, goal, planner, bank['model'],
                                  settings.tolerance, settings.max_iterations)
             elif m == 'random':
                 budget = settings.planner.bank_size + (
                     _budget(rows['model'][-1]) if rows['model'] else 0)
                 loop = ShapeLoop(net, ctx, goal, RandomSearch(budget, settings.seed + gi),
-                                 banks[key]['model'], settings.tolerance,
-                                 settings.max_iterations)
+                                 bank['model'], settings.tolerance, settings.max_iterations)
             else:
-                bank, sim = banks[key]['oracle']
-                loop = ShapeLoop(sim, ctx, goal, planner, bank, settings.tolerance,
+                oracle_bank, sim = bank['oracle']
+                loop = ShapeLoop(sim, ctx, goal, planner, oracle_bank, settings.tolerance,
                                  settings.max_iterations)
-            res = _run_loop(loop, plant)
-            best = res['steps'][res['best']]
-            rows[m].append({
-                'goal': gi, 'scene': int(g.scene.id), 'object': g.scene.object,
-                'touching': g.touching, 'success': res['success'],
-                'iterations': res['iterations'],
-                'success_within': [bool(any(s['success'] for s in res['steps'][:i + 1]))
-                                   for i in range(settings.max_iterations)],
-                'plan_ms': [s['plan_ms'] for s in res['steps']],
-                'evaluations': [s['evaluations'] for s in res['steps']],
-                'final_tip_error_px': best['tip_error_px'], 'final_iou': best['iou'],
-                'final_contact_as_goal': res['touching'] == g.touching,
-                'pressure_error': pressure_errors(res['plan'].pressures_pa, g.pressures_pa),
-                'goal_pressures_pa': g.pressures_pa, 'steps': res['steps'],
-                'seconds': time.perf_counter() - t0,
-                '_reached': res['reached'], '_plan': res['plan'].predicted})
+            rows[m].append(_row(gi, g, _run_loop(loop, plant), settings.max_iterations,
+                                time.perf_counter() - t0))
             bar.update(1)
     bar.close()
     summary = summarise(rows, settings)
     summary['goals'] = len(goals)
     summary['bank_build_ms_median'] = {m: float(np.median(v)) for m, v in build_ms.items() if v}
     if out_dir is not None:
-        out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
-        clean = {m: [{k: v for k, v in r.items() if not k.startswith('_')} for r in rs]
-                 for m, rs in rows.items()}
-        (out / 'control.json').write_text(json.dumps({'summary': summary, 'goals': clean},
-                                                     indent=2, default=_json))
-        summary['figure'] = str(goal_figure(goals, rows, views, out / 'control.png'))
+        summary['figure'] = _write(Path(out_dir), summary, goals, rows, views)
     return summary
+
+
+def _scene_banks(methods, net, ctx, cfg, scene, views, limits, spec, settings,
+                 build_ms: dict) -> dict:
+    """Build the start banks of one scene: the model's and the simulator oracle's."""
+    banks = {}
+    if 'model' in methods:
+        banks['model'] = Bank.for_scene(net, ctx, settings.planner.bank_size,
+                                        settings.planner.seed)
+        build_ms['model'].append(banks['model'].build_ms)
+    if 'oracle' in methods:
+        sim = SimForward(cfg, scene, views, limits, spec.size, spec.channels == 1)
+        banks['oracle'] = (Bank.for_scene(sim, ctx, settings.planner.bank_size,
+                                          settings.planner.seed), sim)
+        build_ms['oracle'].append(banks['oracle'][0].build_ms)
+    return banks
+
+
+def _row(gi: int, g, res: dict, max_iterations: int, seconds: float) -> dict:
+    """Return one goal's record for one method (keys with ``_`` stay out of the JSON)."""
+    best = res['steps'][res['best']]
+    return {
+        'goal': gi, 'scene': int(g.scene.id), 'object': g.scene.object,
+        'touching': g.touching, 'success': res['success'],
+        'iterations': res['iterations'],
+        'success_within': [bool(any(s['success'] for s in res['steps'][:i + 1]))
+                           for i in range(max_iterations)],
+        'plan_ms': [s['plan_ms'] for s in res['steps']],
+        'evaluations': [s['evaluations'] for s in res['steps']],
+        'final_tip_error_px': best['tip_error_px'], 'final_iou': best['iou'],
+        'final_contact_as_goal': res['touching'] == g.touching,
+        'pressure_error': pressure_errors(res['plan'].pressures_pa, g.pressures_pa),
+        'goal_pressures_pa': g.pressures_pa, 'steps': res['steps'],
+        'seconds': seconds, '_reached': res['reached'], '_plan': res['plan'].predicted}
+
+
+def _write(out: Path, summary: dict, goals, rows: dict, views) -> str:
+    """Write ``control.json`` (summary and every goal) and the figure; return its path."""
+    out.mkdir(parents=True, exist_ok=True)
+    clean = {m: [{k: v for k, v in r.items() if not k.startswith('_')} for r in rs]
+             for m, rs in rows.items()}
+    (out / 'control.json').write_text(json.dumps({'summary': summary, 'goals': clean},
+                                                 indent=2, default=_json))
+    return str(goal_figure(goals, rows, views, out / 'control.png'))
 
 
 def _budget(row: dict) -> int:

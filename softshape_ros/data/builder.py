@@ -15,6 +15,7 @@ import json
 from bisect import bisect_left
 from collections import Counter, defaultdict
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 from rosbags.rosbag2 import Reader
@@ -153,6 +154,16 @@ def _check(s: _Session, stamp: int, cams, max_skew_ns: int):
     return np.stack(imgs), None
 
 
+class _Row(NamedTuple):
+    """One kept actuation sample, before it is written."""
+
+    initial: dict          # camera -> rest image of its scene
+    target: dict           # camera -> image after the actuation
+    pressures_pa: object   # (6,) measured, nearest the trigger
+    scene_index: int       # unique across bags
+    stamp_ns: int
+
+
 def build_dataset(bags, out, cfg, gray=None, overwrite: bool = False, progress: bool = True):
     """
     Build a dataset folder from one or more bags; returns (Dataset, report).
@@ -173,34 +184,12 @@ def build_dataset(bags, out, cfg, gray=None, overwrite: bool = False, progress: 
         s = _read_bag(bag, cfg, gray, size, progress)
         dropped['malformed_sample_json'] += s.bad_samples
         triggers += len(s.triggers)
-        # The rest images of a sample: its scene's latest complete, settled rest trigger
-        # before it (a scene may be re-rested; a later rest never applies backwards).
-        rest = defaultdict(list)
-        for stamp in sorted(st for st, d in s.samples.items() if d['kind'] == 'rest'):
-            d = s.samples[stamp]
-            imgs, why = _check(s, stamp, cams, max_skew_ns)
-            if why is None and not d['settled']:
-                why = 'unsettled'
-            if why is not None:
-                dropped[f'rest_{why}'] += 1
-                continue
-            rest[d['scene_id']].append((stamp, imgs))
+        rest = _rest_images(s, cams, max_skew_ns, dropped)
         local_ids = {}
         for stamp in sorted(st for st, d in s.samples.items() if d['kind'] == 'actuation'):
             d = s.samples[stamp]
-            imgs, why = _check(s, stamp, cams, max_skew_ns)
-            p = None
-            if why is None and not d['settled']:
-                why = 'unsettled'
-            if why is None and d['scene_id'] not in s.scenes:
-                why = 'unknown_scene'
             before = [r for r in rest.get(d['scene_id'], []) if r[0] < stamp]
-            if why is None and not before:
-                why = 'no_rest_images'
-            if why is None:
-                p = _nearest_pressure(s, stamp, bound_ns)
-                if p is None:
-                    why = 'no_pressure'
+            imgs, p, why = _actuation(s, stamp, d, cams, max_skew_ns, bound_ns, bool(before))
             if why is not None:
                 dropped[why] += 1
                 continue
@@ -211,9 +200,8 @@ def build_dataset(bags, out, cfg, gray=None, overwrite: bool = False, progress: 
                 local_ids[sid] = gid
                 scene_map.append({'bag': str(bag), 'scene_id': sid, 'index': gid,
                                   'scene': json.loads(s.scenes[sid].to_json())})
-            rows.append((before[-1][1], imgs, p, local_ids[sid], str(bag), stamp))
-        trig_without_sample = s.triggers - set(s.samples)
-        dropped['trigger_without_sample'] += len(trig_without_sample)
+            rows.append(_Row(before[-1][1], imgs, p, local_ids[sid], stamp))
+        dropped['trigger_without_sample'] += len(s.triggers - set(s.samples))
     dropped = {k: v for k, v in dropped.items() if v}
     channels = 1 if gray else 3
     meta = {
@@ -223,14 +211,51 @@ def build_dataset(bags, out, cfg, gray=None, overwrite: bool = False, progress: 
         'provenance': {'source': 'bags', 'bags': [str(b.resolve()) for b in bags],
                        'config': cfg.source},
         'triggers': triggers, 'kept': len(rows), 'dropped': dropped, 'scenes': scene_map,
-        'stamps_ns': [r[5] for r in rows],
+        'stamps_ns': [r.stamp_ns for r in rows],
     }
     w = DatasetWriter(out, len(rows), cams, channels, size, cfg.max_pressures_pa,
                       meta=meta, overwrite=overwrite, contact=BAG_CONTACT,
                       shape=BAG_SHAPE)
-    for i, (init, target, p, sid, _, _) in enumerate(
-            tqdm(rows, desc='write dataset', unit='sample', disable=not progress)):
-        w.put(i, init, target, p, sid)
+    for i, r in enumerate(tqdm(rows, desc='write dataset', unit='sample',
+                               disable=not progress)):
+        w.put(i, r.initial, r.target, r.pressures_pa, r.scene_index)
     ds = w.close()
     report = {'triggers': triggers, 'kept': len(rows), 'dropped': dropped}
     return ds, report
+
+
+def _rest_images(s, cams, max_skew_ns: int, dropped: Counter) -> dict:
+    """
+    Return scene id -> [(stamp, images)] of its complete, settled rest triggers, in order.
+
+    A sample's rest images are its scene's latest such trigger before it (a scene may be
+    re-rested; a later rest never applies backwards). Rejected rests are counted.
+    """
+    rest = defaultdict(list)
+    for stamp in sorted(st for st, d in s.samples.items() if d['kind'] == 'rest'):
+        imgs, why = _check(s, stamp, cams, max_skew_ns)
+        if why is None and not s.samples[stamp]['settled']:
+            why = 'unsettled'
+        if why is not None:
+            dropped[f'rest_{why}'] += 1
+            continue
+        rest[s.samples[stamp]['scene_id']].append((stamp, imgs))
+    return rest
+
+
+def _actuation(s, stamp: int, d: dict, cams, max_skew_ns: int, bound_ns: int,
+               has_rest: bool) -> tuple:
+    """Return (images, pressures, None) for a usable actuation, else (.., .., why not)."""
+    imgs, why = _check(s, stamp, cams, max_skew_ns)
+    if why is None and not d['settled']:
+        why = 'unsettled'
+    if why is None and d['scene_id'] not in s.scenes:
+        why = 'unknown_scene'
+    if why is None and not has_rest:
+        why = 'no_rest_images'
+    p = None
+    if why is None:
+        p = _nearest_pressure(s, stamp, bound_ns)
+        if p is None:
+            why = 'no_pressure'
+    return imgs, p, why

@@ -18,6 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
+from softshape_ros.demo.participant import Participant
+
 #: DemoSettings fields this stage depends on (its reuse key).
 KEYS = ('control_goals', 'control_live', 'control_bank', 'seed')
 
@@ -157,8 +159,10 @@ def _figure(rows, views, pred, cfg, path: Path) -> Path:
     return path
 
 
-class ControlClient:
+class ControlClient(Participant):
     """The user's side over DDS: scene, goal images, results, camera frames (by stamp)."""
+
+    node_name = 'softshape_demo_control'
 
     def __init__(self, cfg):
         self.cfg = cfg
@@ -167,19 +171,14 @@ class ControlClient:
         self.frames: dict = {v: {} for v in cfg.camera_names}
         self.diag: dict = {}
 
-    def __enter__(self):
-        import rclpy
+    def connect(self, n) -> None:
+        """Publish the scene and goal images; watch results, diagnostics and frames."""
         from diagnostic_msgs.msg import DiagnosticArray
-        from rclpy.executors import SingleThreadedExecutor
         from sensor_msgs.msg import Image
         from std_msgs.msg import String
 
         from softshape_ros.nodes.common import IMAGE_QOS, LATCHED_QOS, RELIABLE_QOS
-        self._owns = not rclpy.ok()
-        if self._owns:
-            rclpy.init()
-        self.node = rclpy.create_node('softshape_demo_control')
-        t, n = self.cfg.topics, self.node
+        t = self.cfg.topics
         self.String = String
         self.pub_scene = n.create_publisher(String, t.scene, LATCHED_QOS)
         self.pub_goal = {v: n.create_publisher(Image, t.camera('goal_image', v), IMAGE_QOS)
@@ -189,25 +188,6 @@ class ControlClient:
         for v in self.cfg.camera_names:
             n.create_subscription(Image, t.camera('camera_image', v),
                                   lambda m, v=v: self._on_frame(v, m), IMAGE_QOS)
-        self.executor = SingleThreadedExecutor()
-        self.executor.add_node(n)
-        self._stop = False
-        self.thread = threading.Thread(target=self._spin, daemon=True)
-        self.thread.start()
-        return self
-
-    def _spin(self):
-        while not self._stop:
-            self.executor.spin_once(timeout_sec=0.05)
-
-    def __exit__(self, *exc):
-        import rclpy
-        self._stop = True
-        self.thread.join(timeout=5)
-        self.executor.remove_node(self.node)
-        self.node.destroy_node()
-        if self._owns:
-            rclpy.try_shutdown()
 
     def _on_result(self, msg):
         with self.lock:

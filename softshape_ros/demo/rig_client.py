@@ -12,20 +12,19 @@ import threading
 import time
 
 import numpy as np
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
-from rclpy.executors import SingleThreadedExecutor
 from sensor_msgs.msg import Image, JointState
 from std_msgs.msg import Float64MultiArray, Header, String
 
 from softshape_ros.nodes.common import (IMAGE_QOS, LATCHED_QOS, RELIABLE_QOS, image_to_numpy,
                                         ns_to_stamp, stamp_to_ns)
+from softshape_ros.demo.participant import Participant
 from softshape_ros.processes import wait_until
 from softshape_ros.vision.preprocess import preprocess
 
 
-class RigClient:
-    """Context manager: an rclpy node spinning in a background thread."""
+class RigClient(Participant):
+    """The user's side of the recorded and live stages (a :class:`Participant`)."""
 
     def __init__(self, cfg, views=None, gray=None):
         self.cfg = cfg
@@ -37,18 +36,14 @@ class RigClient:
         self.last_sample_stamp = None
         self.collector_failed = ''
         self.inference_state = ''
+        self.inference_scene = ''       # the scene inference last said it is on
         self.frames = {v: {} for v in self.views}
         self.predicted = {v: [] for v in self.views}
         self.measured = None
 
-    def __enter__(self):
-        if not rclpy.ok():
-            rclpy.init()
-            self._owns_context = True
-        else:
-            self._owns_context = False
-        self.node = rclpy.create_node('softshape_demo')
-        n, t = self.node, self.cfg.topics
+    def connect(self, n) -> None:
+        """Publish what the user would; watch samples, diagnostics, pressures and images."""
+        t = self.cfg.topics
         self.pub_scene = n.create_publisher(String, t.scene, LATCHED_QOS)
         self.pub_sample = n.create_publisher(String, t.sample, RELIABLE_QOS)
         self.pub_trigger = n.create_publisher(Header, t.trigger, RELIABLE_QOS)
@@ -61,24 +56,6 @@ class RigClient:
                                   lambda m, v=v: self._on_frame(v, m), IMAGE_QOS)
             n.create_subscription(Image, t.camera('predicted_image', v),
                                   lambda m, v=v: self._on_predicted(v, m), IMAGE_QOS)
-        self.executor = SingleThreadedExecutor()
-        self.executor.add_node(n)
-        self._stop = False
-        self.thread = threading.Thread(target=self._spin, daemon=True)
-        self.thread.start()
-        return self
-
-    def _spin(self):
-        while not self._stop:
-            self.executor.spin_once(timeout_sec=0.05)
-
-    def __exit__(self, *exc):
-        self._stop = True
-        self.thread.join(timeout=5)
-        self.executor.remove_node(self.node)
-        self.node.destroy_node()
-        if self._owns_context:
-            rclpy.try_shutdown()
 
     # -- callbacks -------------------------------------------------------------------------
     def _on_sample(self, msg):
@@ -97,6 +74,8 @@ class RigClient:
                 self.collector_failed = st.message
             if 'inference' in st.name:
                 self.inference_state = st.message
+                self.inference_scene = next((kv.value for kv in st.values if kv.key == 'scene'),
+                                            '')
 
     def _on_measured(self, msg):
         self.measured = np.asarray(msg.effort, dtype=np.float64)
@@ -184,13 +163,15 @@ class RigClient:
         zeros = np.zeros(6)
         self.pub_scene.publish(String(data=json.dumps(scene)))
         self.pub_command.publish(Float64MultiArray(data=zeros.tolist()))
-        wait_until(lambda: 'waiting' in self.inference_state, 30.0,
-                   what='inference to take the new scene', processes=procs)
+        # Inference also says 'waiting' before any scene: wait for it to name this one.
+        sid = str(scene['id'])
+        wait_until(lambda: 'waiting' in self.inference_state and self.inference_scene == sid,
+                   30.0, what=f'inference to take scene {sid}', processes=procs)
         self._settle(zeros, procs)
         time.sleep(0.2)
         stamp = self._snap(procs, 'rest', scene['id'], zeros)
-        wait_until(lambda: self.inference_state == 'predicting', 30.0,
-                   what='inference to take the rest images', processes=procs)
+        wait_until(lambda: self.inference_state == 'predicting' and self.inference_scene == sid,
+                   30.0, what='inference to take the rest images', processes=procs)
         return self.prepared(stamp)
 
     def command_and_snap(self, pressures, procs):

@@ -435,11 +435,12 @@ class DueLink:
         if changed & msg.flags & P.F_FAULT:
             # No trustworthy measurement: do not hold pressure blind; vent and report.
             self.on_event('error', 'Due reports a pressure feedback fault: venting')
+            # Counted before it is sent: whoever sees the vent at the Due sees the count.
+            self.counters['fault_vents'] += 1
             try:
                 self.vent()
-                self.counters['fault_vents'] += 1
             except LinkDown:
-                pass
+                self.counters['fault_vents_unsent'] += 1
         self.last_flags = msg.flags & ~P.F_ACK
         stamp_ns, dev_us = self.clock.map(msg.t_us, rx_ns)
         self.on_state(Measurement(stamp_ns, dev_us, np.asarray(msg.pressures_pa, dtype=float),

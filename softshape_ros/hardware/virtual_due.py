@@ -65,6 +65,7 @@ class VirtualDue:
         self._garbage = bytearray()
         self._stall_until = 0.0
         self._master = self._slave = None
+        self._pty_generation = 0        # changes whenever the pty is opened or closed
         self._slave_name = ''
         self._running = False
         self._thread = None
@@ -125,6 +126,7 @@ class VirtualDue:
             tmp.symlink_to(name)
             os.replace(tmp, self.link)
         self._master, self._slave, self._slave_name = master, slave, name
+        self._pty_generation += 1
         self.stats['connects'] += 1
 
     def _close_pty(self) -> None:
@@ -137,6 +139,7 @@ class VirtualDue:
                 except OSError:
                     pass
         self._master = self._slave = None
+        self._pty_generation += 1
 
     # ------------------------------------------------------------------ faults
     def stall(self, seconds: float) -> None:
@@ -197,15 +200,20 @@ class VirtualDue:
             if time.monotonic() < self._stall_until:
                 time.sleep(0.002)
                 continue
-            master = self._master
+            master, generation = self._master, self._pty_generation
             if master is None:
                 time.sleep(0.005)
                 last = time.monotonic()
                 continue
             try:
                 ready, _, _ = select.select([master], [], [], self.period_s)
-            except (OSError, ValueError):       # closed under us by disconnect()
-                continue
+            except (OSError, ValueError) as exc:
+                if self._pty_generation != generation:  # closed under us by disconnect()
+                    continue
+                # Nobody here closed it: another part of the process closed this fd number
+                # (a double close). Say so instead of going silently deaf.
+                raise RuntimeError(f'virtual Due: its pty master (fd {master}) was closed '
+                                   f'by someone else: {exc}') from exc
             data = b''
             if ready:
                 try:

@@ -76,6 +76,7 @@ class InferenceNode(Node):
         self.rest_stamps: set[int] = set()
         self.seen_samples = False
         self.awaiting_rest = False
+        self.scene_id: int | None = None
         for v in self.core.views:
             self.create_subscription(Image, t.camera('camera_image', v),
                                      lambda msg, v=v: self.on_image(v, msg), image_qos)
@@ -106,6 +107,7 @@ class InferenceNode(Node):
             return
         self.core.clear_initial()
         self.awaiting_rest = True
+        self.scene_id = scene.id
         self.get_logger().info(f'scene {scene.id}: waiting for its rest images')
 
     def on_sample(self, msg: String) -> None:
@@ -217,7 +219,9 @@ class InferenceNode(Node):
             level, message = WARN, 'waiting for initial images'
         if not self.worker.is_alive():
             level, message = ERROR, 'inference worker died'
+        # 'scene': the placement its initial images are (to be) of; '' before any /rig/scene
         values = dict(self.counts, superseded=self.slot.superseded,
+                      scene='' if self.scene_id is None else str(self.scene_id),
                       latency_ms_median=f'{np.median(lat):.2f}',
                       latency_ms_p99=f'{np.percentile(lat, 99):.2f}', last_error=self.last_error)
         return fill(stat, level, message, values)

@@ -35,11 +35,46 @@ from softshape_ros.nodes.common import (ERROR, IMAGE_QOS, LATCHED_QOS, OK, RELIA
                                         SENSOR_QOS, WARN, declare_rig_config, diagnostic_status,
                                         image_to_numpy, main_wrapper, ns_to_stamp,
                                         numpy_to_image, publish_diagnostics, stamp_to_ns)
+from softshape_ros.nodes.parameters import Param, declare
 from softshape_ros.scene import Scene, SceneError
 
 
 class Abort(Exception):
     """The loop cannot go on safely (no frames, model error, superseded); says why."""
+
+
+def parameters(cfg) -> list[Param]:
+    """List what the controller takes (limits default to rig.yaml's)."""
+    limits = [float(x) for x in cfg.max_pressures_pa]
+    return [
+        Param('model', '', 'checkpoint folder (model.safetensors + config.json); required'),
+        Param('threads', 1, 'torch CPU threads for planning', (1, 256)),
+        Param('max_iterations', 3, 'closed-loop iterations (plan, move, film) per goal',
+              (1, 100)),
+        Param('tip_tolerance_px', 2.0, 'reached: tip within this (64 px network image) in '
+              'every view', (0.0, 64.0)),
+        Param('iou_tolerance', 0.9, 'reached: robot-silhouette IoU at least this (image and '
+              'silhouette goals)', (0.0, 1.0)),
+        Param('contact', 'any', 'image/silhouette goals: whether the robot must touch the '
+              'object (a tip JSON goal may say)', choices=tuple(CONTACT_MODES)),
+        Param('settle_tolerance_pa', -1.0, 'settled: every chamber within this of the command; '
+              '< 0 = rig.yaml collection.settle_tolerance_pa', (-1.0, 1e6)),
+        Param('settle_timeout_s', -1.0, 'film anyway after this; < 0 = rig.yaml '
+              'collection.settle_timeout_s', (-1.0, 600.0)),
+        Param('frame_timeout_s', 10.0, 'no frame from a camera this long after a trigger: stop '
+              '(on_error)', (0.01, 600.0)),
+        Param('on_error', 'hold', 'camera lost or model error: hold the last command, or vent',
+              choices=('hold', 'vent')),
+        Param('hold_period_s', 1.0, 're-send the held command this often (under the bridge '
+              "watchdog's 3 s)", (0.01, 60.0)),
+        Param('bank_size', 384, 'actuations predicted once per scene (the planner\'s starts)',
+              (1, 100_000)),
+        Param('lm_iterations', 4, 'Levenberg-Marquardt steps per plan at most', (0, 100)),
+        Param('max_pressure_pa', limits, 'per-chamber limit, Pa; may only lower rig.yaml\'s',
+              (0.0, 1e6), length=len(limits)),
+        Param('reliable_images', True, 'camera subscriptions reliable (false for best-effort '
+              'cameras)'),
+    ]
 
 
 class ShapeController(Node):
@@ -48,43 +83,38 @@ class ShapeController(Node):
     def __init__(self, **kwargs):
         super().__init__('shape_controller', **kwargs)
         self.cfg = declare_rig_config(self)
-        par = self.declare_parameter
-        model_path = par('model', '').value
-        threads = int(par('threads', 1).value)
-        max_iterations = int(par('max_iterations', 3).value)
-        tol = Tolerance(float(par('tip_tolerance_px', 2.0).value),
-                        float(par('iou_tolerance', 0.9).value))
-        self.contact = par('contact', 'any').value
+        self.params = p = declare(self, parameters(self.cfg))
         coll = self.cfg.collection
-        v = float(par('settle_tolerance_pa', -1.0).value)
-        self.settle_tol = coll.settle_tolerance_pa if v < 0 else v
-        v = float(par('settle_timeout_s', -1.0).value)
-        self.settle_timeout = coll.settle_timeout_s if v < 0 else v
-        self.frame_timeout = float(par('frame_timeout_s', 10.0).value)
-        self.on_error = par('on_error', 'hold').value
-        self.hold_period = float(par('hold_period_s', 1.0).value)
-        planner = PlannerConfig(bank_size=int(par('bank_size', 384).value),
-                                lm_iterations=int(par('lm_iterations', 4).value))
-        limits = [float(x) for x in par('max_pressure_pa', self.cfg.max_pressures_pa).value]
-        image_qos = IMAGE_QOS if par('reliable_images', True).value else SENSOR_QOS
-        if self.contact not in CONTACT_MODES:
-            raise ValueError(f'contact must be one of {CONTACT_MODES}, got {self.contact!r}')
-        if self.on_error not in ('hold', 'vent'):
-            raise ValueError(f'on_error must be hold or vent, got {self.on_error!r}')
-        if self.frame_timeout <= 0 or self.hold_period <= 0:
-            raise ValueError('frame_timeout_s and hold_period_s must be > 0')
-        if not model_path:
+        self.contact = p.contact
+        self.settle_tol = coll.settle_tolerance_pa if p.settle_tolerance_pa < 0 \
+            else p.settle_tolerance_pa
+        self.settle_timeout = coll.settle_timeout_s if p.settle_timeout_s < 0 \
+            else p.settle_timeout_s
+        self.frame_timeout, self.on_error = p.frame_timeout_s, p.on_error
+        self.hold_period = p.hold_period_s
+        if not p.model:
             raise ValueError('parameter "model" is empty: give a checkpoint '
                              '(ros2 run softshape_ros shape_controller --ros-args -p model:=PATH)')
         import torch
-        torch.set_num_threads(max(1, threads))
+        torch.set_num_threads(p.threads)
         from softshape_ros.model import Predictor
-        self.core = Controller(Predictor.from_checkpoint(model_path), self.cfg, limits, planner,
-                               tol, max_iterations)
+        self.core = Controller(Predictor.from_checkpoint(p.model), self.cfg, p.max_pressure_pa,
+                               PlannerConfig(bank_size=p.bank_size,
+                                             lm_iterations=p.lm_iterations),
+                               Tolerance(p.tip_tolerance_px, p.iou_tolerance),
+                               p.max_iterations)
         self.views = list(self.core.spec.views)
-        self.get_logger().info(f'model {model_path}: views {self.views}; limits '
+        self.get_logger().info(f'model {p.model}: views {self.views}; limits '
                                f'{[round(x) for x in self.core.limits]} Pa')
+        self._make_interfaces(IMAGE_QOS if p.reliable_images else SENSOR_QOS)
+        self._init_state()
+        self.worker = threading.Thread(target=self.work, name='shape-controller', daemon=True)
+        self.worker.start()
+        self.create_timer(self.hold_period, self.keep_alive)
+        self.create_timer(1.0, self.report)
 
+    def _make_interfaces(self, image_qos) -> None:
+        """Create the publishers, subscriptions and services (topics from rig.yaml)."""
         t = self.cfg.topics
         self.pub_command = self.create_publisher(Float64MultiArray, t.pressure_command,
                                                  RELIABLE_QOS)
@@ -108,6 +138,8 @@ class ShapeController(Node):
         self.create_service(Trigger, '~/cancel', self.on_cancel)
         self.create_service(Trigger, '~/vent', self.on_vent)
 
+    def _init_state(self) -> None:
+        """Set what the executor callbacks and the worker share (under ``self.cond``)."""
         self.cond = threading.Condition()
         self.measured = None            # (receipt time, pressures in config order)
         self.frames: dict[str, dict] = {v: {} for v in self.views}
@@ -123,10 +155,6 @@ class ShapeController(Node):
         self.counts = {'goals': 0, 'reached': 0, 'not_reached': 0, 'aborted': 0,
                        'rejected_goals': 0}
         self.running = True
-        self.worker = threading.Thread(target=self.work, name='shape-controller', daemon=True)
-        self.worker.start()
-        self.create_timer(self.hold_period, self.keep_alive)
-        self.create_timer(1.0, self.report)
 
     # -- inputs (executor thread) -----------------------------------------------------------
     def on_measured(self, msg: JointState) -> None:
