@@ -168,7 +168,7 @@ def overhead(n: int) -> dict:
 
     Self-contained (it runs as source in a subprocess of each tree; code without a contact
     record times none). CPU time of this process, not wall time: it holds up better on a
-    loaded machine.
+    loaded machine. A failed solve is counted (its time in ``solve_ms``) and skipped.
     """
     import tempfile
     import time
@@ -177,6 +177,7 @@ def overhead(n: int) -> dict:
     from softshape_ros.config import load_rig_config
     from softshape_ros.sim import SimRig
     from softshape_ros.sim.generate import generate, make_plan
+    from softshape_ros.sim.statics import SolverError
     try:
         from softshape_ros.sim.generate import measure_contact
     except ImportError:
@@ -187,7 +188,7 @@ def overhead(n: int) -> dict:
     plan = make_plan(cfg, n, max(1, n // 50), seed=1)
     rig = SimRig(cfg)
     solve = render = record = 0.0
-    last = None
+    last, failed = None, 0
     for i, p in enumerate(plan.pressures):
         si = int(plan.sample_scene[i])
         if si != last:
@@ -195,7 +196,13 @@ def overhead(n: int) -> dict:
             rig.solve([0.0] * 6)
             last = si
         t0 = time.process_time()
-        st = rig.solve(p)
+        try:
+            st = rig.solve(p)
+        except SolverError:
+            failed += 1
+            solve += time.process_time() - t0
+            rig.set_scene(plan.scenes[si])
+            continue
         t1 = time.process_time()
         rig.render_inputs(st, 64, True, 3, views)
         t2 = time.process_time()
@@ -207,7 +214,7 @@ def overhead(n: int) -> dict:
         generate(cfg, plan, Path(d) / 'ds', views, workers=1, progress=False)
         total = time.process_time() - t0
     ms = 1e3 / n
-    out = {'samples': n, 'solve_ms': solve * ms, 'render_ms': render * ms,
+    out = {'samples': n, 'failed_solves': failed, 'solve_ms': solve * ms, 'render_ms': render * ms,
            'contact_record_ms': record * ms, 'generate_ms': total * ms}
     out['overhead_ms'] = out['generate_ms'] - out['solve_ms'] - out['render_ms']
     out['overhead_share'] = out['overhead_ms'] / out['generate_ms']

@@ -28,7 +28,9 @@ import numpy as np
 
 from softshape_ros.config import RigConfig
 from softshape_ros.scene import Scene
+from softshape_ros.sim import kernels
 from softshape_ros.sim.lie import rpy_matrix
+from softshape_ros.sim.objects import ObstacleSet
 from softshape_ros.sim.statics import SolverError
 
 OBJECT_CYCLE = ('cylinder', 'ring', 'prism')
@@ -41,6 +43,7 @@ CHUNK = 50                  # samples per work item (a scene with more is split)
 MAX_RETRIES = 5             # a failed solve is redrawn (counted) this often at most
 ARC_STEP_M = 1e-4           # backbone sampling of the contact arc length
 CONTACT_GAP_M = 1e-4        # in contact: the tube's surface within this of the object
+NEAR_BAND_M = 5e-4          # ... and its knot intervals sampled where within this of that
 _THREAD_VARS = ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS')
 
 
@@ -203,18 +206,6 @@ class ContactSample:
     penetration_m: float
 
 
-def _knot_tangents(s: np.ndarray, P: np.ndarray) -> np.ndarray:
-    """Return dP/ds at the knots: three-point differences, exact for quadratics."""
-    h = np.diff(s)[:, None]
-    d = np.diff(P, axis=0) / h
-    T = np.empty_like(P)
-    h0, h1 = h[:-1], h[1:]
-    T[1:-1] = (h1 * d[:-1] + h0 * d[1:]) / (h0 + h1)
-    T[0] = d[0] - h[0] * (d[1] - d[0]) / (h[0] + h[1])
-    T[-1] = d[-1] + h[-1] * (d[-1] - d[-2]) / (h[-1] + h[-2])
-    return T
-
-
 def measure_contact(state, obstacles, step: float = ARC_STEP_M,
                     band: float = CONTACT_GAP_M) -> ContactSample:
     """
@@ -226,62 +217,24 @@ def measure_contact(state, obstacles, step: float = ARC_STEP_M,
     millimetre out. Touching: a gap minimum (not a ridge) in contact. Arc: the backbone
     length in contact; the backbone is interpolated (cubic Hermite through the samples and
     the contact points) every ``step`` m where the samples come within 0.5 mm of contact,
-    crossings linear. Force: the magnitude of the sum of all contact forces (ridges
-    subtract), what a force sensor under the object reads. Penetration: how deep the
-    surface is inside the object at most (0 if nowhere).
+    crossings linear (``kernels.contact_arc``). Force: the magnitude of the sum of all
+    contact forces (ridges subtract), what a force sensor under the object reads.
+    Penetration: how deep the surface is inside the object at most (0 if nowhere).
     """
     cs = list(state.contacts)
     force = float(np.linalg.norm(np.sum([c.force_n for c in cs], axis=0))) if cs else 0.0
     near = [c for c in cs if not c.ridge and c.gap_m <= band]
     if not near:
         return ContactSample(False, 0.0, force, 0.0)
-    s = np.asarray(state.s_m, dtype=float)
-    cs_s = np.array([c.s_m for c in near])
-    keep = np.min(np.abs(s[:, None] - cs_s[None, :]), axis=1) > 1e-5
-    knots = np.concatenate([s[keep], cs_s])
-    pts = np.concatenate([state.backbone_m[keep], np.array([c.backbone_m for c in near])])
-    rad = np.concatenate([state.radii_m[keep], np.interp(cs_s, s, state.radii_m)])
-    order = np.argsort(knots, kind='stable')
-    knots, pts, rad = knots[order], pts[order], rad[order]
-
-    def gaps(xyz, r):
-        return np.min([obj.sdf(xyz)[0] - r for obj in obstacles], axis=0) - band
-
-    g = gaps(pts, rad)
-    nk = int(keep.sum())
-    exact = order >= nk                 # the contact points: their refined gaps are exact
-    g[exact] = np.array([c.gap_m for c in near])[order[exact] - nk] - band
-    # Intervals whose ends come within 0.5 mm of contact: sample them every ``step``.
-    k = np.nonzero(np.minimum(g[:-1], g[1:]) <= 5e-4)[0]
-    h = np.diff(knots)[k]
-    m = np.maximum(1, np.ceil(h / step).astype(int))
-    T = _knot_tangents(knots, pts)
-    seg = np.repeat(np.arange(len(k)), m - 1)
-    first = np.cumsum(m - 1) - (m - 1)
-    t = ((np.arange(len(seg)) - first[seg] + 1) / m[seg])[:, None]
-    a, b, hh = k[seg], k[seg] + 1, h[seg][:, None]
-    # Cubic Hermite basis on each interval (positions and knot tangents).
-    p = ((2 * t - 3) * t * t + 1) * pts[a] + ((t - 2) * t + 1) * t * hh * T[a] \
-        + (3 - 2 * t) * t * t * pts[b] + (t - 1) * t * t * hh * T[b]
-    inner = gaps(p, rad[a] + t[:, 0] * (rad[b] - rad[a])) if len(seg) else np.zeros(0)
-    # One profile per interval: its two knots and the points between, end to end.
-    size = m + 1
-    off = np.cumsum(size) - size
-    prof = np.empty(int(size.sum()))
-    ends = np.zeros(len(prof), bool)
-    ends[off] = ends[off + m] = True
-    prof[off], prof[off + m] = g[k], g[k + 1]
-    prof[~ends] = inner
-    lo, hi = prof[:-1], prof[1:]
-    valid = np.ones(len(lo), bool)
-    valid[(off + m)[:-1]] = False       # the step from one interval's end to the next's start
-    width = np.repeat(h / m, size)[:-1]
-    both = (lo <= 0) & (hi <= 0)
-    one = (lo <= 0) != (hi <= 0)
-    dn, up = np.where(lo <= 0, lo, hi) - 1e-15, np.where(lo <= 0, hi, lo)
-    frac = np.where(one, dn / np.where(one, dn - up, -1.0), 0.0)
-    arc = float(np.sum(width * valid * (both + frac)))
-    return ContactSample(True, arc, force, float(state.max_penetration_m))
+    ob = obstacles if isinstance(obstacles, ObstacleSet) else ObstacleSet.of(obstacles)
+    arc = kernels.contact_arc(
+        np.ascontiguousarray(state.s_m, dtype=float),
+        np.ascontiguousarray(state.backbone_m, dtype=float),
+        np.ascontiguousarray(state.radii_m, dtype=float),
+        np.array([c.s_m for c in near]), np.array([c.backbone_m for c in near]),
+        np.array([c.gap_m for c in near]), ob.kinds, ob.rows, ob.poses, float(step),
+        float(band), NEAR_BAND_M)
+    return ContactSample(True, float(arc), force, float(state.max_penetration_m))
 
 
 # -- worker side ------------------------------------------------------------------------
@@ -335,7 +288,7 @@ def simulate_chunk(job):
     target = np.empty((n, *initial.shape), np.uint8)
     pressure = np.empty((n, 6), np.float32)
     record = np.zeros((4, n))
-    stats = {'replaced': 0, 'iterations': np.empty(n, np.int32), 'failed': []}
+    stats = {'replaced': 0, 'crease': 0, 'iterations': np.empty(n, np.int32), 'failed': []}
     for k, p in enumerate(pressures):
         c0 = cpu()
         for attempt in range(MAX_RETRIES + 1):
@@ -358,6 +311,7 @@ def simulate_chunk(job):
         c = measure_contact(st, rig.obstacles)
         record[:, k] = (c.touching, c.arc_m, c.force_n, c.penetration_m)
         stats['iterations'][k] = st.iterations
+        stats['crease'] += st.crease
         c3 = cpu()
         spent['solve'] += c1 - c0
         spent['render'] += c2 - c1
@@ -379,7 +333,7 @@ def _context():
     methods = mp.get_all_start_methods()
     ctx = mp.get_context('forkserver' if 'forkserver' in methods else 'spawn')
     if ctx.get_start_method() == 'forkserver':
-        ctx.set_forkserver_preload(['softshape_ros.sim.rig'])
+        ctx.set_forkserver_preload(['softshape_ros.sim.preload'])
     return ctx
 
 
@@ -445,7 +399,7 @@ def generate(cfg: RigConfig, plan: Plan, out, views, size: int = 64, gray: bool 
             for c in plan.chunks(chunk)]
     workers = max(1, min(len(jobs), workers or os.cpu_count() or 1))
     init = (cfg, writer.rows, size, gray, list(views), supersample, noise)
-    touching, replaced, pen, failed = 0, 0, 0.0, []
+    touching, replaced, crease, pen, failed = 0, 0, 0, 0.0, []
     spent = dict.fromkeys(CPU_PARTS, 0.0)
     iters = np.zeros(n, np.int32)
     bar = tqdm(total=n, desc='simulate', unit='sample', disable=not progress)
@@ -460,6 +414,7 @@ def generate(cfg: RigConfig, plan: Plan, out, views, size: int = 64, gray: bool 
         for c, stats in results:
             touching += stats['touching']
             replaced += stats['replaced']
+            crease += stats['crease']
             failed += stats['failed']
             iters[c.start:c.stop] = stats['iterations']
             pen = max(pen, stats['max_penetration_m'])
@@ -481,6 +436,7 @@ def generate(cfg: RigConfig, plan: Plan, out, views, size: int = 64, gray: bool 
     summary = {'samples': n, 'touching_share': touching / n,
                'replaced_failed_solves': replaced,
                'failed_solves': sorted(failed, key=lambda f: f['row'])[:100],
+               'crease_solves': crease,
                'median_newton_iterations': float(np.median(iters)),
                'max_penetration_m': pen, 'toward_share': float(np.mean(toward))}
     distribution = {'min_gap_m': MIN_GAP_M, 'max_gap_m': MAX_GAP_M, 'gap_power': GAP_POWER,

@@ -723,7 +723,7 @@ def _at_node(node_X, X):
     return k if k < node_X.shape[0] and node_X[k] == X else -1
 
 
-@_kernel
+@_inline
 def _point_frame(q, tab, g_nodes, J_nodes, X, w, g_out, J_out):
     """Write the pose and the body Jacobian at X: a Magnus step from the node before it."""
     P, Xw, E, Ms, U, TS = w
@@ -751,7 +751,7 @@ def _point_frame(q, tab, g_nodes, J_nodes, X, w, g_out, J_out):
             J_out[r, seg * D + c] += TS[r, c]
 
 
-@_kernel
+@_inline
 def _point_pose(q, tab, g_nodes, X, w, g_out):
     """Write the pose at X (no Jacobian)."""
     P, Xw, E, Ms, U, TS = w
@@ -1069,6 +1069,118 @@ def least_gap(kinds, prms, poses, pts, radii):
     return best
 
 
+# -- the contact record of an equilibrium ----------------------------------------------------
+@_kernel
+def _least_gap_at(kinds, prms, poses, x, y, z, H):
+    """Return the least signed distance of a world point to the obstacles."""
+    best = np.inf
+    for o in range(kinds.shape[0]):
+        best = min(best, _sdf_world(kinds[o], prms[o], poses[o], x, y, z, H)[0])
+    return best
+
+
+@_kernel
+def contact_arc(s, P, radii, cs, cp, cg, kinds, prms, poses, step, band, near):
+    """
+    Return the backbone length (m) whose tube surface lies within ``band`` of the obstacles.
+
+    Knots: the backbone samples (s, P, radii; those within 10 um of a contact point left
+    out) and the contact points (cs, cp, exact gaps cg), in arc-length order. Each knot
+    interval whose ends come within ``near`` of the band is sampled every ``step`` on the
+    cubic Hermite through its knots (tangents: three-point differences, exact for
+    quadratics); inside each interval the crossings are linear in the gap.
+    """
+    N, C = s.shape[0], cs.shape[0]
+    order = np.argsort(cs, kind='mergesort')
+    K = N + C
+    kn = np.empty(K)
+    kp = np.empty((K, 3))
+    kr = np.empty(K)
+    kg = np.empty(K)
+    H = np.empty((3, 3))
+    i = j = k = 0
+    while i < N or j < C:
+        if i < N:
+            far = True
+            for c in range(C):
+                if abs(s[i] - cs[c]) <= 1e-5:
+                    far = False
+            if not far:
+                i += 1
+                continue
+        # Ties go to the sample (the order a stable sort of samples, then contacts, gives).
+        if j >= C or (i < N and s[i] <= cs[order[j]]):
+            kn[k], kr[k] = s[i], radii[i]
+            for r in range(3):
+                kp[k, r] = P[i, r]
+            kg[k] = _least_gap_at(kinds, prms, poses, P[i, 0], P[i, 1], P[i, 2], H) \
+                - radii[i] - band
+            i += 1
+        else:
+            c = order[j]
+            kn[k] = cs[c]
+            for r in range(3):
+                kp[k, r] = cp[c, r]
+            # The tube radius there, linear between the samples (as np.interp).
+            m = min(max(_bisect_right(s, cs[c]) - 1, 0), N - 2)
+            t = (cs[c] - s[m]) / (s[m + 1] - s[m]) if N > 1 else 0.0
+            t = min(max(t, 0.0), 1.0)
+            kr[k] = radii[m] + t * (radii[min(m + 1, N - 1)] - radii[m])
+            kg[k] = cg[c] - band
+            j += 1
+        k += 1
+    if k < 2:
+        return 0.0
+    T = np.empty((k, 3))
+    for r in range(3):
+        for a in range(k):
+            if k == 2:
+                T[a, r] = (kp[1, r] - kp[0, r]) / (kn[1] - kn[0])
+            elif a == 0 or a == k - 1:
+                b0 = 0 if a == 0 else k - 3
+                h0, h1 = kn[b0 + 1] - kn[b0], kn[b0 + 2] - kn[b0 + 1]
+                d0 = (kp[b0 + 1, r] - kp[b0, r]) / h0
+                d1 = (kp[b0 + 2, r] - kp[b0 + 1, r]) / h1
+                if a == 0:
+                    T[a, r] = d0 - h0 * (d1 - d0) / (h0 + h1)
+                else:
+                    T[a, r] = d1 + h1 * (d1 - d0) / (h1 + h0)
+            else:
+                h0, h1 = kn[a] - kn[a - 1], kn[a + 1] - kn[a]
+                d0 = (kp[a, r] - kp[a - 1, r]) / h0
+                d1 = (kp[a + 1, r] - kp[a, r]) / h1
+                T[a, r] = (h1 * d0 + h0 * d1) / (h0 + h1)
+    arc = 0.0
+    for a in range(k - 1):
+        ga, gb = kg[a], kg[a + 1]
+        if min(ga, gb) > near:
+            continue
+        h = kn[a + 1] - kn[a]
+        m = max(1, int(math.ceil(h / step)))
+        lo = ga
+        for q in range(1, m + 1):
+            if q == m:
+                hi = gb
+            else:
+                t = q / m
+                h00, h10 = ((2 * t - 3) * t * t + 1), ((t - 2) * t + 1) * t * h
+                h01, h11 = (3 - 2 * t) * t * t, (t - 1) * t * t * h
+                x = h00 * kp[a, 0] + h10 * T[a, 0] + h01 * kp[a + 1, 0] + h11 * T[a + 1, 0]
+                y = h00 * kp[a, 1] + h10 * T[a, 1] + h01 * kp[a + 1, 1] + h11 * T[a + 1, 1]
+                z = h00 * kp[a, 2] + h10 * T[a, 2] + h01 * kp[a + 1, 2] + h11 * T[a + 1, 2]
+                hi = _least_gap_at(kinds, prms, poses, x, y, z, H) \
+                    - (kr[a] + t * (kr[a + 1] - kr[a])) - band
+            w = h / m
+            if lo <= 0 and hi <= 0:
+                arc += w
+            elif (lo <= 0) != (hi <= 0):
+                dn = (lo if lo <= 0 else hi) - 1e-15
+                up = hi if lo <= 0 else lo
+                arc += w * dn / (dn - up)
+            lo = hi
+    return arc
+
+
 # -- contact -------------------------------------------------------------------------------
 class PenaltyParams(NamedTuple):
     """Numbers of the penalty contact law (contact.py documents each); a float array to kernels."""
@@ -1171,7 +1283,7 @@ def _sample_gaps(tab, q, g_nodes, kind, prm, pose, near, sub, node_gap, node_slo
     return Xs, gap, slope
 
 
-@_kernel
+@_inline
 def _gap_derivatives(tab, q, g_nodes, iv, X, kind, prm, pose, w, H, G):
     """Return (d gap/dX, d2 gap/dX2) at X in node interval iv (strain-based p'')."""
     P, Xw, E, Ms, U, TS = w

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 import threading
+from dataclasses import dataclass
 
 import numba
 import numpy as np
@@ -408,10 +409,50 @@ def _raster_mesh(verts, norms, tris, material, grid, depth, ident, normal):
 
 # -- the frame ---------------------------------------------------------------------------------
 @numba.njit(**_JIT)
-def _render_kernel(out, depth, ident, normal, grid, pc, radii, objs, tol_px, light,
-                   robot_rgb, robot_amb, obj_rgb, obj_amb, bg):
+def _objects_mesh(objs, grid, tol_px):
     """
-    Mesh and z-buffer the robot (camera-frame backbone ``pc``) and the objects, then shade.
+    Return (vertices, unit normals, triangles) of all the objects, in the camera frame.
+
+    Each object row (:func:`pack_objects`) gets as many chords as keep its outline within
+    ``tol_px`` pixels of ``grid`` at its least depth. The objects do not move within a
+    scene, so a rig makes this once per scene and grid (:class:`ObjectMesh`).
+    """
+    px = grid[5] / grid[0]                        # metres per pixel at unit depth
+    nv, nt = 0, 0
+    parts = []
+    for m in range(objs.shape[0]):
+        o = objs[m]
+        lv, ln, tris = object_mesh(o, tol_px * px * max(o[23], NEAR_M))
+        parts.append((lv, ln, tris))
+        nv += lv.shape[0]
+        nt += tris.shape[0]
+    verts = np.empty((nv, 3))
+    norms = np.empty((nv, 3))
+    out = np.empty((nt, 3), np.int32)
+    v0, t0 = 0, 0
+    for m in range(len(parts)):
+        o = objs[m]
+        lv, ln, tris = parts[m]
+        # Object frame -> camera frame: x_c = centre + M^T x_l.
+        for q in range(lv.shape[0]):
+            for c in range(3):
+                verts[v0 + q, c] = o[13 + c] + (o[1 + c] * lv[q, 0] + o[4 + c] * lv[q, 1]
+                                                + o[7 + c] * lv[q, 2])
+                norms[v0 + q, c] = o[1 + c] * ln[q, 0] + o[4 + c] * ln[q, 1] \
+                    + o[7 + c] * ln[q, 2]
+        for t in range(tris.shape[0]):
+            for c in range(3):
+                out[t0 + t, c] = tris[t, c] + v0
+        v0 += lv.shape[0]
+        t0 += tris.shape[0]
+    return verts, norms, out
+
+
+@numba.njit(**_JIT)
+def _render_kernel(out, depth, ident, normal, grid, pc, radii, overts, onorms, otris, tol_px,
+                   light, robot_rgb, robot_amb, obj_rgb, obj_amb, bg):
+    """
+    Mesh and z-buffer the robot (camera-frame backbone ``pc``) and the objects' mesh, then shade.
 
     ``depth`` (1/z), ``ident`` (0 robot, 1 object, -1 background) and ``normal`` are work
     buffers of the frame's size; ``out`` gets the H x W x 3 uint8 image. Returns 0, or the
@@ -434,19 +475,7 @@ def _render_kernel(out, depth, ident, normal, grid, pc, radii, objs, tol_px, lig
     ident[:, :] = -1
     verts, norms, tris = tube_mesh(pc, radii, n_theta, max(2, n_theta // 4))
     _raster_mesh(verts, norms, tris, 0, grid, depth, ident, normal)
-    px = grid[5] / grid[0]                        # metres per pixel at unit depth
-    for m in range(objs.shape[0]):
-        o = objs[m]
-        lv, ln, tris = object_mesh(o, tol_px * px * max(o[23], NEAR_M))
-        # Object frame -> camera frame: x_c = centre + M^T x_l.
-        verts = np.empty_like(lv)
-        norms = np.empty_like(ln)
-        for q in range(lv.shape[0]):
-            for c in range(3):
-                verts[q, c] = o[13 + c] + (o[1 + c] * lv[q, 0] + o[4 + c] * lv[q, 1]
-                                           + o[7 + c] * lv[q, 2])
-                norms[q, c] = o[1 + c] * ln[q, 0] + o[4 + c] * ln[q, 1] + o[7 + c] * ln[q, 2]
-        _raster_mesh(verts, norms, tris, 1, grid, depth, ident, normal)
+    _raster_mesh(overts, onorms, otris, 1, grid, depth, ident, normal)
     H, W = depth.shape
     lx, ly, lz = light[0], light[1], light[2]
     r0, r1, r2 = robot_rgb[0] * 255.0, robot_rgb[1] * 255.0, robot_rgb[2] * 255.0
@@ -536,15 +565,40 @@ def _buffers(H, W):
     return cache
 
 
+@dataclass(frozen=True)
+class ObjectMesh:
+    """The objects of a scene meshed for one camera and pixel grid (camera frame)."""
+
+    grid: tuple
+    tol_px: float
+    verts: np.ndarray       # (V, 3)
+    norms: np.ndarray       # (V, 3)
+    tris: np.ndarray        # (T, 3) int32
+
+
+def object_mesh_for(camera: PinholeCamera, objects: np.ndarray, grid=None,
+                    tol_px: float = OUTLINE_TOLERANCE_PX) -> ObjectMesh:
+    """Return the objects (:func:`pack_objects` rows) meshed for ``camera`` and ``grid``."""
+    grid = tuple(grid if grid is not None else camera.grid())
+    verts, norms, tris = _objects_mesh(np.ascontiguousarray(objects, dtype=float),
+                                       _grid8(camera, grid), float(tol_px))
+    return ObjectMesh(grid, float(tol_px), verts, norms, tris)
+
+
+def _grid8(camera: PinholeCamera, grid) -> np.ndarray:
+    u0, du, v0, dv = grid[:4]
+    return np.array([camera.fx, camera.fy, camera.cx, camera.cy, u0, du, v0, dv], dtype=float)
+
+
 def render_view(camera: PinholeCamera, centres: np.ndarray, radii: np.ndarray, obstacles,
-                grid=None, objects: np.ndarray | None = None,
-                tol_px: float = OUTLINE_TOLERANCE_PX) -> np.ndarray:
+                grid=None, objects=None, tol_px: float = OUTLINE_TOLERANCE_PX) -> np.ndarray:
     """
     Return an H x W x 3 uint8 RGB image of the tube through ``centres`` and the obstacles.
 
     ``grid`` comes from :meth:`PinholeCamera.grid` (default: the full frame); ``objects``
-    is :func:`pack_objects` of ``obstacles`` for this camera when already made; ``tol_px``
-    is how far (grid pixels) a mesh's outline may stray from the true one. Raises
+    is :func:`pack_objects` of ``obstacles`` for this camera, or their
+    :func:`object_mesh_for` this grid and tolerance, when already made; ``tol_px`` is how
+    far (grid pixels) a mesh's outline may stray from the true one. Raises
     :class:`RenderError` for a backbone that is not finite, radii that are not positive, an
     empty grid or a camera inside an object: never a silent image.
     """
@@ -557,15 +611,18 @@ def render_view(camera: PinholeCamera, centres: np.ndarray, radii: np.ndarray, o
     if c.ndim != 2 or c.shape[1] != 3 or len(c) < 1 or r.shape != (len(c),):
         raise RenderError(f'backbone must be (N, 3) points with N radii, got {c.shape} and '
                           f'{r.shape}')
-    if objects is None:
-        objects = pack_objects(camera, obstacles)
+    if not isinstance(objects, ObjectMesh):
+        objects = object_mesh_for(camera, pack_objects(camera, obstacles)
+                                  if objects is None else objects, grid, tol_px)
+    elif objects.grid != tuple(grid) or objects.tol_px != float(tol_px):
+        raise ValueError('render_view: the object mesh was made for another grid or tolerance')
     pc = (c - camera.position) @ camera.R          # camera frame
     depth, ident, normal = _buffers(H, W)
     out = np.empty((H, W, 3), np.uint8)
-    grid8 = np.array([camera.fx, camera.fy, camera.cx, camera.cy, u0, du, v0, dv], dtype=float)
-    err = _render_kernel(out, depth, ident, normal, grid8, pc, np.ascontiguousarray(r), objects,
-                         float(tol_px), camera.head_light, ROBOT_RGB, ROBOT_AMBIENT, OBJECT_RGB,
-                         OBJECT_AMBIENT, _BG)
+    err = _render_kernel(out, depth, ident, normal, _grid8(camera, grid), pc,
+                         np.ascontiguousarray(r), objects.verts, objects.norms, objects.tris,
+                         float(tol_px), camera.head_light, ROBOT_RGB, ROBOT_AMBIENT,
+                         OBJECT_RGB, OBJECT_AMBIENT, _BG)
     if err:
         raise RenderError(f'camera {camera.name}: {_ERRORS[err]}')
     return out

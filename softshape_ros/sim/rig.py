@@ -21,7 +21,8 @@ from softshape_ros.sim.camera import PinholeCamera
 from softshape_ros.sim.contact import (DEFAULT_SMOOTHING_M, DEFAULT_STIFFNESS_N_M,
                                        PenaltyContact)
 from softshape_ros.sim.objects import ObstacleSet, obstacle_from_scene
-from softshape_ros.sim.render import RenderError, pack_objects, render_view
+from softshape_ros.sim.render import (OUTLINE_TOLERANCE_PX, RenderError, object_mesh_for,
+                                      pack_objects, render_view)
 from softshape_ros.sim.rod import Rod, RodSpec
 from softshape_ros.sim.statics import Actuator, SolverError, Statics
 
@@ -34,6 +35,12 @@ TOUCH_STEPS = 20
 STIFFENING_STAGES = (('touching', (1.0,)), ('touching', (0.1, 1.0)),
                      (None, (0.01, 0.1, 1.0)))
 STAGE_TOL = 1e-6            # relative residual of the softened stages (only starts)
+# A contact solve that fails at the rig's quadrature is redone with this many times the Gauss
+# nodes (shorter Magnus steps): where the robot lies flat along a face, the gap profile is
+# flat to a tenth of a micron over a centimetre, and the single Magnus step from a node puts
+# the points' positions off the strain's tangent by up to 3e-5 in slope, enough to move a
+# critical point by 0.3 mm and keep the forces from being the potential's gradient there.
+FINE_QUADRATURE = 2
 
 
 @dataclass
@@ -50,6 +57,7 @@ class SimState:
     iterations: int
     contacts: list = field(default_factory=list)
     max_penetration_m: float = 0.0
+    crease: bool = False            # converged by the crease test (statics.CREASE_MOTION_M)
 
     @property
     def backbone(self) -> np.ndarray:
@@ -63,7 +71,7 @@ class SimState:
                 's_m': self.s_m.tolist(), 'backbone_m': self.backbone_m.tolist(),
                 'residual': self.residual, 'iterations': self.iterations,
                 'contacts': [c.to_dict() for c in self.contacts],
-                'max_penetration_m': self.max_penetration_m}
+                'max_penetration_m': self.max_penetration_m, 'crease': self.crease}
 
 
 def chamber_actuators(cfg: RigConfig) -> list[Actuator]:
@@ -89,11 +97,14 @@ class SimRig:
         self.image_noise_std = float(image_noise_std)
         self.pressure_noise_pa = float(pressure_noise_pa)
         self.contact_on = contact
+        self._rod_overrides = dict(rod_overrides)
+        self._fine = None           # (rod, statics) at FINE_QUADRATURE, made on first need
         self.contact_args = (contact_stiffness, contact_smoothing)
         self.limits = np.asarray(cfg.max_pressures_pa, dtype=float)
         self.scene = None
         self.obstacles = []
         self._render_objects = {n: pack_objects(cam, []) for n, cam in self.cameras.items()}
+        self._object_meshes = {}    # (camera, grid, tolerance) -> ObjectMesh of this scene
         self.obstacle_set = ObstacleSet.of([])
         self.contact = None
         self._q = None
@@ -133,6 +144,7 @@ class SimRig:
         self.obstacles = obstacles
         self.obstacle_set = obstacle_set
         self._render_objects = render_objects
+        self._object_meshes = {}
         self.contact = (PenaltyContact.of(self.obstacles, *self.contact_args)
                         if self.obstacles and self.contact_on else None)
         self._q = None
@@ -160,11 +172,11 @@ class SimRig:
             # The predicted free shape is deep in the object: the free equilibrium would
             # only serve as the end of the touching-start path, and the prediction does
             # that as well (the contact solve ends where it ends either way).
-            q, asm, it = self._solve_contact(p, self._touching_start(q0, g0))
-            if not asm.contact.any:
+            q, asm, it, rod = self._solve_contact(p, self._touching_start(q0, g0))
+            if not asm.contact.any and rod is self.rod:
                 self._free = (q, asm, p)      # it was free after all: a fresh base
             self._q = q
-            return self._state(q, p, asm, it)
+            return self._state(q, p, asm, it, rod)
         q, asm, it = self.statics.solve(p, q0=q0)
         self._free = (q, asm, p)
         if self.contact is not None:
@@ -174,10 +186,10 @@ class SimRig:
             g_free = self._node_gap(q, asm.kin)
             near = None if g_free < 0.0 else self.contact.evaluate(self.rod, asm.kin)
             if near is None or near.any:
-                q, asm, it2 = self._solve_contact(p, self._touching_start(q, g_free))
-                it += it2
-            else:
-                asm.contact = near
+                q, asm, it2, rod = self._solve_contact(p, self._touching_start(q, g_free))
+                self._q = q
+                return self._state(q, p, asm, it + it2, rod)
+            asm.contact = near
         self._q = q
         return self._state(q, p, asm, it)
 
@@ -186,21 +198,37 @@ class SimRig:
         Solve with contact from ``q0``; on failure retry with the penalty stiffened in stages.
 
         Attempts (``STIFFENING_STAGES``): direct from ``q0``; from ``q0`` with the penalty at
-        1/10 first; from the straight rod with 1/100, 1/10, 1. The last failure raises
+        1/10 first; from the straight rod with 1/100, 1/10, 1; then all of them again with
+        ``FINE_QUADRATURE`` times the Gauss nodes; only then, at the rig's quadrature, the
+        same stages with the crease test (``statics.CREASE_MOTION_M``). Returns (q,
+        assembly, iterations, the rod solved on); the last failure raises
         :class:`SolverError`.
         """
         its, error = 0, None
-        for start, stages in STIFFENING_STAGES:
-            q = q0 if start == 'touching' else None
-            try:
-                for f in stages:
-                    q, asm, it = self.statics.solve(p, q0=q, contact=self.contact.scaled(f),
-                                                    tol=STAGE_TOL if f < 1 else 1e-10)
-                    its += it
-                return q, asm, its
-            except SolverError as exc:
-                error = exc
+        for fine, crease in ((False, False), (True, False), (False, True)):
+            rod, statics = self._fine_model() if fine else (self.rod, self.statics)
+            for start, stages in STIFFENING_STAGES:
+                q = q0 if start == 'touching' else None
+                try:
+                    for f in stages:
+                        q, asm, it = statics.solve(p, q0=q, contact=self.contact.scaled(f),
+                                                   tol=STAGE_TOL if f < 1 else 1e-10,
+                                                   crease=crease)
+                        its += it
+                    return q, asm, its, rod
+                except SolverError as exc:
+                    error = exc
         raise error
+
+    def _fine_model(self):
+        """Return (rod, statics) of the same robot with FINE_QUADRATURE times the nodes."""
+        if self._fine is None:
+            spec = self.rod.spec
+            nodes = FINE_QUADRATURE * (spec.n_gauss or spec.order + 4)
+            rod = Rod(RodSpec.from_config(self.cfg.robot, **dict(self._rod_overrides,
+                                                                 n_gauss=nodes)))
+            self._fine = (rod, Statics(rod, chamber_actuators(self.cfg), gravity_on=True))
+        return self._fine
 
     def _node_gap(self, q, kin=None) -> float:
         """Return the least gap (m) between the tube at the nodes and the objects."""
@@ -246,8 +274,8 @@ class SimRig:
                 break
         return q_prev + a * (q_free - q_prev)
 
-    def _state(self, q, p, asm, it) -> SimState:
-        rod = self.rod
+    def _state(self, q, p, asm, it, rod=None) -> SimState:
+        rod = rod if rod is not None else self.rod
         kin = asm.kin
         g, _ = rod.at(kin, self.sample_s, jac=False)
         contact = asm.contact
@@ -257,7 +285,8 @@ class SimRig:
                         iterations=int(it),
                         contacts=contact.contacts if contact is not None else [],
                         max_penetration_m=(contact.max_penetration_m
-                                           if contact is not None else 0.0))
+                                           if contact is not None else 0.0),
+                        crease=asm.crease)
 
     def _noisy(self, img: np.ndarray) -> np.ndarray:
         if self.image_noise_std > 0:
@@ -271,13 +300,25 @@ class SimRig:
             if isinstance(self._render_objects.get(name), RenderError):
                 raise self._render_objects[name]
 
+    def _objects_for(self, name: str, grid, tol_px: float):
+        """Return the scene's objects meshed for camera ``name`` and ``grid`` (made once)."""
+        key = (name, tuple(grid), float(tol_px))
+        mesh = self._object_meshes.get(key)
+        if mesh is None:
+            mesh = object_mesh_for(self.cameras[name], self._render_objects[name], grid, tol_px)
+            self._object_meshes[key] = mesh
+        return mesh
+
     def render(self, state: SimState) -> dict:
         """Return {camera: H x W x 3 uint8 RGB} at each camera's configured resolution."""
         self.check_views()
-        return {name: self._noisy(render_view(cam, state.backbone_m, state.radii_m,
-                                              self.obstacles,
-                                              objects=self._render_objects[name]))
-                for name, cam in self.cameras.items()}
+        out = {}
+        for name, cam in self.cameras.items():
+            grid = cam.grid()
+            out[name] = self._noisy(render_view(
+                cam, state.backbone_m, state.radii_m, self.obstacles, grid,
+                objects=self._objects_for(name, grid, OUTLINE_TOLERANCE_PX)))
+        return out
 
     def render_inputs(self, state: SimState, size: int = 64, gray: bool = True,
                       supersample: int = 4, cameras=None) -> dict:
@@ -302,9 +343,10 @@ class SimRig:
         n = int(size) * int(supersample)
         for name in names:
             cam = self.cameras[name]
+            grid = cam.grid(cam.crop, (n, n))
             img = self._noisy(render_view(cam, state.backbone_m, state.radii_m, self.obstacles,
-                                          cam.grid(cam.crop, (n, n)),
-                                          objects=self._render_objects[name]))
+                                          grid, objects=self._objects_for(
+                                              name, grid, OUTLINE_TOLERANCE_PX)))
             out[name] = preprocess(img, [0, 0, n, n], int(size), gray)
         return out
 

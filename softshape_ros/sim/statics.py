@@ -41,6 +41,24 @@ NEWTON_SHRINK = 0.7       # a plain Newton step that shrinks the residual norm t
 ENERGY_ROUNDOFF = 1e-12   # energies within this (relative) are equal
 MAX_ACTIVE = 6            # constraints the step QP may hold at once
 LOAD_TOL_M = 1e-12        # point loads may act this far past the tip (round-off)
+# Where the robot lies along an object the gap profile is flat, and a pair of gap extrema (a
+# contact and a ridge) is born or dies within a step: the pair's forces grow with the square
+# root of the shape's motion, so the residual has no Lipschitz bound there. Newton's step from
+# one side lands in the other with the residual tens of times larger, and the merit falls
+# along no step at all, microns from the equilibrium. Where no strict solve converges, a
+# state where the line search finds no acceptable step (or only tiny ones, TINY_STEPS),
+# whose Newton correction moves no backbone point more than the contact's smoothing length
+# (the penalty does not resolve the surface finer) and whose residual is within CREASE_TOL
+# (where the contact jumps between the tip and a point before it, the force's jump is up to
+# 4e-3 of the largest load), is taken (``Assembly.crease`` says so; the states report their
+# residual).
+CREASE_MOTION_M = 2e-5
+CREASE_TOL = 1e-2
+# Steps this short, this many times in a row, are a stall: the attempt ends there (its load
+# bisection or the next stage follows) instead of spending its iterations, each a full line
+# search, on steps that do not move it.
+TINY_STEP = 1.0 / 256
+TINY_STEPS = 3
 
 
 class SolverError(RuntimeError):
@@ -119,6 +137,7 @@ class Assembly:
     contact: ContactResult | None
     partial_tangent: np.ndarray
     pending: Callable | None = None  # the geometric stiffness, still to subtract
+    crease: bool = False             # converged by the crease test (CREASE_MOTION_M)
 
     @property
     def tangent(self) -> np.ndarray:
@@ -268,12 +287,15 @@ class Statics:
 
     # -- solver ------------------------------------------------------------------------
     def solve(self, u, loads=(), q0=None, contact: ContactLaw | None = None,
-              tol: float = 1e-10, max_iter: int = 40, max_depth: int = 8):
+              tol: float = 1e-10, max_iter: int = 40, max_depth: int = 8,
+              crease: bool = False):
         """
         Solve for the equilibrium; return (q, assembly, iterations).
 
         Newton with a backtracking line search; when a step fails the load is applied in
         smaller increments (bisection of the load factor, up to ``max_depth`` times).
+        ``crease``: also accept a state by the crease test (``CREASE_MOTION_M``), a last
+        resort where strict convergence failed.
         """
         rod = self.rod
         q = np.zeros(rod.n) if q0 is None else np.array(q0, dtype=float)
@@ -287,8 +309,10 @@ class Statics:
         done, step, depth = 0.0, 1.0, 0
         last = None
         while done < 1.0:
+            # A step past the full load is cut to it, so a halved step is a new load factor.
+            step = min(step, 1.0 - done)
             load_factor = min(1.0, done + step)
-            res = self._newton(q, u, loads, load_factor, contact, tol, max_iter)
+            res = self._newton(q, u, loads, load_factor, contact, tol, max_iter, crease)
             total_iter += res.iterations
             if res.ok:
                 q, last, done = res.q, res.assembly, load_factor
@@ -309,7 +333,8 @@ class Statics:
     def _converged(self, asm: Assembly, tol: float) -> bool:
         return asm.residual_norm <= tol * asm.scale + RESIDUAL_FLOOR
 
-    def _newton(self, q, u, loads, load_factor, contact, tol, max_iter) -> NewtonResult:
+    def _newton(self, q, u, loads, load_factor, contact, tol, max_iter,
+                crease: bool = False) -> NewtonResult:
         """
         Damped Newton on the total potential when all loads are conservative.
 
@@ -326,7 +351,7 @@ class Statics:
         # Trust radius on the predicted motion of the backbone (m): with an object near,
         # a full Newton step from a free shape would dive deep into it.
         radius = TRUST_START_M if contact is not None else np.inf
-        mu = 0.0
+        mu, tiny = 0.0, 0
         for it in range(1, max_iter + 1):
             rn = asm.residual_norm
             if not np.isfinite(rn):
@@ -338,9 +363,13 @@ class Statics:
                 return NewtonResult(False, q, asm, it)
             dq, mu, move = step
             alpha, trial = self._line_search(q, dq, asm, mu, trial_at)
-            if trial is None:
-                # Stalled at round-off level: accept a nearly converged state.
+            tiny = tiny + 1 if alpha < TINY_STEP else 0
+            if trial is None or tiny >= TINY_STEPS:
+                # Stalled at round-off level, or on a crease: accept a nearly converged state.
                 ok = rn <= STALL_TOL * asm.scale + RESIDUAL_FLOOR
+                if not ok and crease and move <= CREASE_MOTION_M \
+                        and rn <= CREASE_TOL * asm.scale + RESIDUAL_FLOOR:
+                    ok = asm.crease = True
                 return NewtonResult(ok, q, asm, it)
             if np.isfinite(radius):
                 radius = (min(TRUST_GROWTH * radius, TRUST_MAX_M) if alpha == 1.0
