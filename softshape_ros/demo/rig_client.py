@@ -23,6 +23,10 @@ from softshape_ros.processes import wait_until
 from softshape_ros.vision.preprocess import preprocess
 
 
+#: Rest snaps per scene before the demo gives up, and how long each waits for inference.
+REST_ATTEMPTS, REST_WAIT_S = 3, 10.0
+
+
 class RigClient(Participant):
     """The user's side of the recorded and live stages (a :class:`Participant`)."""
 
@@ -169,10 +173,21 @@ class RigClient(Participant):
                    30.0, what=f'inference to take scene {sid}', processes=procs)
         self._settle(zeros, procs)
         time.sleep(0.2)
-        stamp = self._snap(procs, 'rest', scene['id'], zeros)
-        wait_until(lambda: self.inference_state == 'predicting' and self.inference_scene == sid,
-                   30.0, what='inference to take the rest images', processes=procs)
-        return self.prepared(stamp)
+        # A rest snap right after start-up can reach us and not inference (the camera's
+        # writer may not have matched inference's reader yet; volatile frames are not
+        # resent): snap again until inference has its rest images, as a user would.
+        for attempt in range(REST_ATTEMPTS):
+            stamp = self._snap(procs, 'rest', scene['id'], zeros)
+            try:
+                wait_until(lambda: self.inference_state == 'predicting'
+                           and self.inference_scene == sid, REST_WAIT_S,
+                           what='inference to take the rest images', processes=procs)
+                return self.prepared(stamp)
+            except TimeoutError:
+                if attempt == REST_ATTEMPTS - 1:
+                    raise
+                print(f'  inference has no rest images of scene {sid} after {REST_WAIT_S:g} s: '
+                      'snapping them again', flush=True)
 
     def command_and_snap(self, pressures, procs):
         """Send a command; return (predicted, actual after settling, command->prediction s)."""
