@@ -41,6 +41,7 @@ class RigClient(Participant):
         self.collector_failed = ''
         self.inference_state = ''
         self.inference_scene = ''       # the scene inference last said it is on
+        self.inference_values: dict = {}
         self.frames = {v: {} for v in self.views}
         self.predicted = {v: [] for v in self.views}
         self.measured = None
@@ -78,8 +79,8 @@ class RigClient(Participant):
                 self.collector_failed = st.message
             if 'inference' in st.name:
                 self.inference_state = st.message
-                self.inference_scene = next((kv.value for kv in st.values if kv.key == 'scene'),
-                                            '')
+                self.inference_values = {kv.key: kv.value for kv in st.values}
+                self.inference_scene = self.inference_values.get('scene', '')
 
     def _on_measured(self, msg):
         self.measured = np.asarray(msg.effort, dtype=np.float64)
@@ -185,7 +186,9 @@ class RigClient(Participant):
                 return self.prepared(stamp)
             except TimeoutError:
                 if attempt == REST_ATTEMPTS - 1:
-                    raise
+                    raise TimeoutError(f'inference never took the rest images of scene {sid} '
+                                       f'({REST_ATTEMPTS} snaps; its last diagnostics: '
+                                       f'{self.inference_state!r} {self.inference_values})')
                 print(f'  inference has no rest images of scene {sid} after {REST_WAIT_S:g} s: '
                       'snapping them again', flush=True)
 

@@ -87,7 +87,9 @@ class InferenceNode(Node):
         self.create_subscription(Float64MultiArray, t.query,
                                  lambda m: self.on_request(m, 'query'), RELIABLE_QOS)
         self.create_service(Trigger, '~/capture_initial', self.on_capture_initial)
-        self.counts = {'requests': 0, 'published': 0, 'rejected': 0}
+        # frames: camera images received (all views); rest_samples: rest samples seen
+        self.counts = {'requests': 0, 'published': 0, 'rejected': 0, 'frames': 0,
+                       'rest_samples': 0}
         self.last_error = ''
         self.latency_ms: deque = deque(maxlen=500)
         self.slot = LatestSlot()
@@ -120,6 +122,7 @@ class InferenceNode(Node):
             self.get_logger().warn(f'ignoring malformed /rig/sample: {exc}')
             return
         if rest:
+            self.counts['rest_samples'] += 1
             self.rest_stamps.add(stamp)
             for v, frames in self.recent.items():       # its frames may already be here
                 if stamp in frames:
@@ -131,6 +134,7 @@ class InferenceNode(Node):
         except ValueError as exc:
             self.get_logger().warn(f'{view}: dropping bad image: {exc}')
             return
+        self.counts['frames'] += 1
         self.latest_frame[view] = frame
         stamp = stamp_to_ns(msg.header.stamp)
         recent = self.recent[view]
