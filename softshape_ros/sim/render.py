@@ -217,79 +217,13 @@ def object_mesh(o, tol):
     if kind == SPHERE:
         r = o[17]
         n = segments(r, tol)
-        verts, norms, tris = tube_mesh(np.zeros((1, 3)), np.array([r]), n, max(2, n // 4))
-        return verts, norms, tris
+        return tube_mesh(np.zeros((1, 3)), np.array([r]), n, max(2, n // 4))
     if kind == CYLINDER:
-        m = segments(o[17], tol)
-        r, hh = o[17] * area_scale(m), o[18]
-        verts = np.zeros((4 * m + 2, 3))
-        norms = np.zeros((4 * m + 2, 3))
-        for j in range(m):
-            c, s_ = np.cos(2.0 * np.pi * j / m), np.sin(2.0 * np.pi * j / m)
-            for g, (z, flat) in enumerate(((-hh, False), (hh, False), (-hh, True), (hh, True))):
-                q = g * m + j
-                verts[q, 0], verts[q, 1], verts[q, 2] = r * c, r * s_, z
-                if flat:
-                    norms[q, 2] = 1.0 if z > 0 else -1.0
-                else:
-                    norms[q, 0], norms[q, 1] = c, s_
-        verts[4 * m, 2], verts[4 * m + 1, 2] = -hh, hh
-        norms[4 * m, 2], norms[4 * m + 1, 2] = -1.0, 1.0
-        tris = np.empty((4 * m, 3), np.int32)
-        n = _band(tris, 0, 0, m, m, True)
-        for j in range(m):
-            tris[n, 0], tris[n, 1], tris[n, 2] = 4 * m, 2 * m + j, 2 * m + (j + 1) % m
-            tris[n + 1, 0], tris[n + 1, 1], tris[n + 1, 2] = 4 * m + 1, 3 * m + j, \
-                3 * m + (j + 1) % m
-            n += 2
+        verts, norms, tris = _cylinder_mesh(o[17], o[18], tol)
     elif kind == RING:
-        M, m = segments(o[17] + o[18], tol), segments(o[18], tol)
-        R0, r = o[17] * area_scale(M), o[18] * area_scale(m)
-        verts = np.empty((M * m, 3))
-        norms = np.empty((M * m, 3))
-        for i in range(M):
-            ca, sa = np.cos(2.0 * np.pi * i / M), np.sin(2.0 * np.pi * i / M)
-            for j in range(m):
-                cb, sb = np.cos(2.0 * np.pi * j / m), np.sin(2.0 * np.pi * j / m)
-                q = i * m + j
-                norms[q, 0], norms[q, 1], norms[q, 2] = cb * ca, cb * sa, sb
-                verts[q, 0] = (R0 + r * cb) * ca
-                verts[q, 1] = (R0 + r * cb) * sa
-                verts[q, 2] = r * sb
-        tris = np.empty((2 * M * m, 3), np.int32)
-        n = 0
-        for i in range(M):
-            n = _band(tris, n, i * m, ((i + 1) % M) * m, m, True)
+        verts, norms, tris = _ring_mesh(o[17], o[18], tol)
     elif kind == PRISM:
-        w, dp, h, sk = o[17], o[18], o[19], o[20]
-        ts = np.tan(sk)
-        corner = np.empty((8, 3))
-        for b in range(8):
-            sx, sy, sz = (b >> 2 & 1) * 2 - 1, (b >> 1 & 1) * 2 - 1, (b & 1) * 2 - 1
-            corner[b, 0] = sx * w / 2 + sz * h / 2 * ts
-            corner[b, 1], corner[b, 2] = sy * dp / 2, sz * h / 2
-        verts = np.empty((24, 3))
-        norms = np.empty((24, 3))
-        tris = np.empty((12, 3), np.int32)
-        f = 0
-        for bit in (4, 2, 1):
-            o1, o2 = (2, 1) if bit == 4 else ((4, 1) if bit == 2 else (4, 2))
-            for side in (0, bit):
-                quad = (side, side | o1, side | o1 | o2, side | o2)
-                e1 = corner[quad[1]] - corner[quad[0]]
-                e2 = corner[quad[3]] - corner[quad[0]]
-                nrm = np.array([e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2],
-                                e1[0] * e2[1] - e1[1] * e2[0]])
-                nrm /= np.sqrt(nrm @ nrm)
-                if nrm @ corner[quad[0]] < 0.0:
-                    nrm = -nrm                    # outward: the prism is centred
-                for v in range(4):
-                    verts[4 * f + v] = corner[quad[v]]
-                    norms[4 * f + v] = nrm
-                tris[2 * f, 0], tris[2 * f, 1], tris[2 * f, 2] = 4 * f, 4 * f + 1, 4 * f + 2
-                tris[2 * f + 1, 0], tris[2 * f + 1, 1], tris[2 * f + 1, 2] = \
-                    4 * f, 4 * f + 2, 4 * f + 3
-                f += 1
+        verts, norms, tris = _prism_mesh(o[17], o[18], o[19], o[20])
     else:                                         # PLANE: z = 0, solid below
         L = PLANE_EXTENT_M / 2
         verts = np.array([[-L, -L, 0.0], [L, -L, 0.0], [L, L, 0.0], [-L, L, 0.0]])
@@ -297,6 +231,91 @@ def object_mesh(o, tol):
         norms[:, 2] = 1.0
         tris = np.array([[0, 1, 2], [0, 2, 3]], np.int32)
     _wind_outward(verts, norms, tris)
+    return verts, norms, tris
+
+
+@numba.njit(**_JIT)
+def _cylinder_mesh(radius, half_height, tol):
+    """Mesh a cylinder: its side band, then both caps as fans (rims with the flat normal)."""
+    m = segments(radius, tol)
+    r, hh = radius * area_scale(m), half_height
+    verts = np.zeros((4 * m + 2, 3))
+    norms = np.zeros((4 * m + 2, 3))
+    for j in range(m):
+        c, s_ = np.cos(2.0 * np.pi * j / m), np.sin(2.0 * np.pi * j / m)
+        for g, (z, flat) in enumerate(((-hh, False), (hh, False), (-hh, True), (hh, True))):
+            q = g * m + j
+            verts[q, 0], verts[q, 1], verts[q, 2] = r * c, r * s_, z
+            if flat:
+                norms[q, 2] = 1.0 if z > 0 else -1.0
+            else:
+                norms[q, 0], norms[q, 1] = c, s_
+    verts[4 * m, 2], verts[4 * m + 1, 2] = -hh, hh
+    norms[4 * m, 2], norms[4 * m + 1, 2] = -1.0, 1.0
+    tris = np.empty((4 * m, 3), np.int32)
+    n = _band(tris, 0, 0, m, m, True)
+    for j in range(m):
+        tris[n, 0], tris[n, 1], tris[n, 2] = 4 * m, 2 * m + j, 2 * m + (j + 1) % m
+        tris[n + 1, 0], tris[n + 1, 1], tris[n + 1, 2] = 4 * m + 1, 3 * m + j, \
+            3 * m + (j + 1) % m
+        n += 2
+    return verts, norms, tris
+
+
+@numba.njit(**_JIT)
+def _ring_mesh(major_radius, minor_radius, tol):
+    """Mesh a torus: M bands around the axis, m chords around the tube."""
+    M, m = segments(major_radius + minor_radius, tol), segments(minor_radius, tol)
+    R0, r = major_radius * area_scale(M), minor_radius * area_scale(m)
+    verts = np.empty((M * m, 3))
+    norms = np.empty((M * m, 3))
+    for i in range(M):
+        ca, sa = np.cos(2.0 * np.pi * i / M), np.sin(2.0 * np.pi * i / M)
+        for j in range(m):
+            cb, sb = np.cos(2.0 * np.pi * j / m), np.sin(2.0 * np.pi * j / m)
+            q = i * m + j
+            norms[q, 0], norms[q, 1], norms[q, 2] = cb * ca, cb * sa, sb
+            verts[q, 0] = (R0 + r * cb) * ca
+            verts[q, 1] = (R0 + r * cb) * sa
+            verts[q, 2] = r * sb
+    tris = np.empty((2 * M * m, 3), np.int32)
+    n = 0
+    for i in range(M):
+        n = _band(tris, n, i * m, ((i + 1) % M) * m, m, True)
+    return verts, norms, tris
+
+
+@numba.njit(**_JIT)
+def _prism_mesh(width, depth, height, skew):
+    """Mesh a prism: six quads (four vertices each, face normal outward), top shifted by skew."""
+    ts = np.tan(skew)
+    corner = np.empty((8, 3))
+    for b in range(8):
+        sx, sy, sz = (b >> 2 & 1) * 2 - 1, (b >> 1 & 1) * 2 - 1, (b & 1) * 2 - 1
+        corner[b, 0] = sx * width / 2 + sz * height / 2 * ts
+        corner[b, 1], corner[b, 2] = sy * depth / 2, sz * height / 2
+    verts = np.empty((24, 3))
+    norms = np.empty((24, 3))
+    tris = np.empty((12, 3), np.int32)
+    f = 0
+    for bit in (4, 2, 1):
+        o1, o2 = (2, 1) if bit == 4 else ((4, 1) if bit == 2 else (4, 2))
+        for side in (0, bit):
+            quad = (side, side | o1, side | o1 | o2, side | o2)
+            e1 = corner[quad[1]] - corner[quad[0]]
+            e2 = corner[quad[3]] - corner[quad[0]]
+            nrm = np.array([e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2],
+                            e1[0] * e2[1] - e1[1] * e2[0]])
+            nrm /= np.sqrt(nrm @ nrm)
+            if nrm @ corner[quad[0]] < 0.0:
+                nrm = -nrm                    # outward: the prism is centred
+            for v in range(4):
+                verts[4 * f + v] = corner[quad[v]]
+                norms[4 * f + v] = nrm
+            tris[2 * f, 0], tris[2 * f, 1], tris[2 * f, 2] = 4 * f, 4 * f + 1, 4 * f + 2
+            tris[2 * f + 1, 0], tris[2 * f + 1, 1], tris[2 * f + 1, 2] = \
+                4 * f, 4 * f + 2, 4 * f + 3
+            f += 1
     return verts, norms, tris
 
 
