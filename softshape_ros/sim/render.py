@@ -506,16 +506,16 @@ def _render_kernel(out, depth, ident, normal, grid, pc, radii, overts, onorms, o
                 out[i, j, 0], out[i, j, 1], out[i, j, 2] = bg[0], bg[1], bg[2]
                 continue
             nx, ny, nz = normal[i, j, 0], normal[i, j, 1], normal[i, j, 2]
-            lam = (nx * lx + ny * ly + nz * lz) / np.sqrt(nx * nx + ny * ny + nz * nz)
-            lam = min(max(lam, 0.0), 1.0)
+            lambert = (nx * lx + ny * ly + nz * lz) / np.sqrt(nx * nx + ny * ny + nz * nz)
+            lambert = min(max(lambert, 0.0), 1.0)
             # Rounded to the nearest level (values are >= 0 and < 255.5).
             if k == 0:
-                s = robot_amb + (1.0 - robot_amb) * lam
+                s = robot_amb + (1.0 - robot_amb) * lambert
                 out[i, j, 0] = np.uint8(r0 * s + 0.5)
                 out[i, j, 1] = np.uint8(r1 * s + 0.5)
                 out[i, j, 2] = np.uint8(r2 * s + 0.5)
             else:
-                s = obj_amb + (1.0 - obj_amb) * lam
+                s = obj_amb + (1.0 - obj_amb) * lambert
                 out[i, j, 0] = np.uint8(o0 * s + 0.5)
                 out[i, j, 1] = np.uint8(o1 * s + 0.5)
                 out[i, j, 2] = np.uint8(o2 * s + 0.5)
