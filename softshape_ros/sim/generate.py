@@ -325,19 +325,8 @@ def simulate_chunk(job):
     stats = {'replaced': 0, 'crease': 0, 'iterations': np.empty(n, np.int32), 'failed': []}
     for k, p in enumerate(pressures):
         c0 = cpu()
-        for attempt in range(MAX_RETRIES + 1):
-            try:
-                st = rig.solve(p)
-                break
-            except SolverError as exc:
-                if attempt == MAX_RETRIES:
-                    raise
-                stats['replaced'] += 1
-                stats['failed'].append({'row': chunk.start + k, 'scene': scene.id,
-                                        'pressures_pa': [float(v) for v in p],
-                                        'error': str(exc)[:200]})
-                p = redraw.uniform(0.0, 1.0, 6) * limits
-                rig.set_scene(scene)
+        st = _solve_or_redraw(rig, scene, p, lambda: redraw.uniform(0.0, 1.0, 6) * limits,
+                              stats, chunk.start + k)
         c1 = cpu()
         target[k] = inputs(st)
         c2 = cpu()
@@ -362,6 +351,27 @@ def simulate_chunk(job):
     spent['other'] = cpu() - c_start - sum(spent.values())
     stats['cpu_s'] = spent
     return chunk, stats
+
+
+def _solve_or_redraw(rig, scene, p, draw, stats: dict, row: int):
+    """
+    Return the equilibrium at ``p``, or at a redrawn ``draw()`` if it fails (counted).
+
+    A failed solve is recorded in ``stats['failed']`` (row, scene, pressures, error) and
+    redrawn at most ``MAX_RETRIES`` times; the rig restarts from the scene's rest.
+    """
+    for attempt in range(MAX_RETRIES + 1):
+        try:
+            return rig.solve(p)
+        except SolverError as exc:
+            if attempt == MAX_RETRIES:
+                raise
+            stats['replaced'] += 1
+            stats['failed'].append({'row': row, 'scene': scene.id,
+                                    'pressures_pa': [float(v) for v in p],
+                                    'error': str(exc)[:200]})
+            p = draw()
+            rig.set_scene(scene)
 
 
 def _context():
