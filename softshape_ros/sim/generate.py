@@ -445,9 +445,7 @@ def generate(cfg: RigConfig, plan: Plan, out, views, size: int = 64, gray: bool 
             for c in plan.chunks(chunk)]
     workers = max(1, min(len(jobs), workers or os.cpu_count() or 1))
     init = (cfg, writer.rows, size, gray, list(views), supersample, noise)
-    touching, replaced, crease, pen, failed = 0, 0, 0, 0.0, []
-    spent = dict.fromkeys(CPU_PARTS, 0.0)
-    iters = np.zeros(n, np.int32)
+    tally = _Tally(n)
     bar = tqdm(total=n, desc='simulate', unit='sample', disable=not progress)
     pool = None
     try:
@@ -458,14 +456,7 @@ def generate(cfg: RigConfig, plan: Plan, out, views, size: int = 64, gray: bool 
             pool, futures = _pool(workers, init, jobs)
             results = (f.result() for f in as_completed(futures))
         for c, stats in results:
-            touching += stats['touching']
-            replaced += stats['replaced']
-            crease += stats['crease']
-            failed += stats['failed']
-            iters[c.start:c.stop] = stats['iterations']
-            pen = max(pen, stats['max_penetration_m'])
-            for part, v in stats['cpu_s'].items():
-                spent[part] += v
+            tally.add(c, stats)
             bar.update(c.stop - c.start)
     except BrokenProcessPool as exc:
         writer.abort()
@@ -479,12 +470,7 @@ def generate(cfg: RigConfig, plan: Plan, out, views, size: int = 64, gray: bool 
             pool.shutdown(wait=True, cancel_futures=True)
         bar.close()
     toward = plan.toward if plan.toward is not None else np.zeros(n, bool)
-    summary = {'samples': n, 'touching_share': touching / n,
-               'replaced_failed_solves': replaced,
-               'failed_solves': sorted(failed, key=lambda f: f['row'])[:100],
-               'crease_solves': crease,
-               'median_newton_iterations': float(np.median(iters)),
-               'max_penetration_m': pen, 'toward_share': float(np.mean(toward))}
+    summary = dict(tally.summary(), toward_share=float(np.mean(toward)))
     distribution = {'min_gap_m': MIN_GAP_M, 'max_gap_m': MAX_GAP_M, 'gap_power': GAP_POWER,
                     'toward_window_deg': math.degrees(TOWARD_WINDOW_RAD), 'chunk': chunk}
     ds = writer.close(
@@ -495,13 +481,52 @@ def generate(cfg: RigConfig, plan: Plan, out, views, size: int = 64, gray: bool 
         dropped={'count': 0, 'why': 'failed solves are redrawn, counted in '
                  'simulator.replaced_failed_solves'})
     wall = time.perf_counter() - t0
-    # CPU per sample: the workers' parts, and this process (planning the jobs, the
-    # progress bar, collecting results, closing the dataset).
-    ms = {part: round(v * 1e3 / n, 3) for part, v in spent.items()}
-    ms['parent'] = round((time.process_time() - cpu0) * 1e3 / n, 3)
-    if workers == 1:
-        ms['parent'] = round(max(0.0, ms['parent'] - sum(spent.values()) * 1e3 / n), 3)
-    ms['beyond_solve_render'] = round(sum(v for k, v in ms.items()
-                                          if k not in ('solve', 'render')), 3)
+    ms = tally.cpu_ms_per_sample(time.process_time() - cpu0, in_process=workers == 1)
     return ds, dict(summary, workers=workers, wall_s=round(wall, 3),
                     samples_per_s=round(n / wall, 1), cpu_ms_per_sample=ms)
+
+
+class _Tally:
+    """What the chunks report, summed as they come back (in any order)."""
+
+    def __init__(self, n: int):
+        self.n, self.touching, self.replaced, self.crease = n, 0, 0, 0
+        self.penetration_m, self.failed = 0.0, []
+        self.spent = dict.fromkeys(CPU_PARTS, 0.0)
+        self.iterations = np.zeros(n, np.int32)
+
+    def add(self, c, stats: dict) -> None:
+        self.touching += stats['touching']
+        self.replaced += stats['replaced']
+        self.crease += stats['crease']
+        self.failed += stats['failed']
+        self.iterations[c.start:c.stop] = stats['iterations']
+        self.penetration_m = max(self.penetration_m, stats['max_penetration_m'])
+        for part, v in stats['cpu_s'].items():
+            self.spent[part] += v
+
+    def summary(self) -> dict:
+        """Return the simulator section of ``meta.json`` (at most 100 failures listed)."""
+        return {'samples': self.n, 'touching_share': self.touching / self.n,
+                'replaced_failed_solves': self.replaced,
+                'failed_solves': sorted(self.failed, key=lambda f: f['row'])[:100],
+                'crease_solves': self.crease,
+                'median_newton_iterations': float(np.median(self.iterations)),
+                'max_penetration_m': self.penetration_m}
+
+    def cpu_ms_per_sample(self, parent_cpu_s: float, in_process: bool) -> dict:
+        """
+        Return CPU ms per sample: the workers' parts, and this process's own.
+
+        The parent plans the jobs, draws the progress bar, collects results and closes the
+        dataset; with one worker the chunks ran here too, so their CPU is taken out.
+        """
+        n = self.n
+        ms = {part: round(v * 1e3 / n, 3) for part, v in self.spent.items()}
+        ms['parent'] = round(parent_cpu_s * 1e3 / n, 3)
+        if in_process:
+            ms['parent'] = round(max(0.0, ms['parent'] - sum(self.spent.values()) * 1e3 / n),
+                                 3)
+        ms['beyond_solve_render'] = round(sum(v for k, v in ms.items()
+                                              if k not in ('solve', 'render')), 3)
+        return ms
