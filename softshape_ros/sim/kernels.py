@@ -1080,16 +1080,8 @@ def _least_gap_at(kinds, prms, poses, x, y, z, H):
 
 
 @_kernel
-def contact_arc(s, P, radii, cs, cp, cg, kinds, prms, poses, step, band, near):
-    """
-    Return the backbone length (m) whose tube surface lies within ``band`` of the obstacles.
-
-    Knots: the backbone samples (s, P, radii; those within 10 um of a contact point left
-    out) and the contact points (cs, cp, exact gaps cg), in arc-length order. Each knot
-    interval whose ends come within ``near`` of the band is sampled every ``step`` on the
-    cubic Hermite through its knots (tangents: three-point differences, exact for
-    quadratics); inside each interval the crossings are linear in the gap.
-    """
+def _arc_knots(s, P, radii, cs, cp, cg, kinds, prms, poses, band, H):
+    """Merge backbone samples and contact points by arc length; return knots and their count."""
     N, C = s.shape[0], cs.shape[0]
     order = np.argsort(cs, kind='mergesort')
     K = N + C
@@ -1097,7 +1089,6 @@ def contact_arc(s, P, radii, cs, cp, cg, kinds, prms, poses, step, band, near):
     kp = np.empty((K, 3))
     kr = np.empty(K)
     kg = np.empty(K)
-    H = np.empty((3, 3))
     i = j = k = 0
     while i < N or j < C:
         if i < N:
@@ -1129,8 +1120,12 @@ def contact_arc(s, P, radii, cs, cp, cg, kinds, prms, poses, step, band, near):
             kg[k] = cg[c] - band
             j += 1
         k += 1
-    if k < 2:
-        return 0.0
+    return kn, kp, kr, kg, k
+
+
+@_kernel
+def _knot_tangents(kn, kp, k):
+    """Return the Hermite tangents at the first ``k`` knots (three-point differences)."""
     T = np.empty((k, 3))
     for r in range(3):
         for a in range(k):
@@ -1150,6 +1145,25 @@ def contact_arc(s, P, radii, cs, cp, cg, kinds, prms, poses, step, band, near):
                 d0 = (kp[a, r] - kp[a - 1, r]) / h0
                 d1 = (kp[a + 1, r] - kp[a, r]) / h1
                 T[a, r] = (h1 * d0 + h0 * d1) / (h0 + h1)
+    return T
+
+
+@_kernel
+def contact_arc(s, P, radii, cs, cp, cg, kinds, prms, poses, step, band, near):
+    """
+    Return the backbone length (m) whose tube surface lies within ``band`` of the obstacles.
+
+    Knots: the backbone samples (s, P, radii; those within 10 um of a contact point left
+    out) and the contact points (cs, cp, exact gaps cg), in arc-length order. Each knot
+    interval whose ends come within ``near`` of the band is sampled every ``step`` on the
+    cubic Hermite through its knots (tangents: three-point differences, exact for
+    quadratics); inside each interval the crossings are linear in the gap.
+    """
+    H = np.empty((3, 3))
+    kn, kp, kr, kg, k = _arc_knots(s, P, radii, cs, cp, cg, kinds, prms, poses, band, H)
+    if k < 2:
+        return 0.0
+    T = _knot_tangents(kn, kp, k)
     arc = 0.0
     for a in range(k - 1):
         ga, gb = kg[a], kg[a + 1]
