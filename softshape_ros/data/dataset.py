@@ -391,23 +391,38 @@ def write_dataset(path, initial, target, pressure, scene, max_pressure_pa, views
     return w.close()
 
 
-def _load_contact(p: Path, meta: dict, n: int) -> ContactRecord | None:
-    present = [name for name in CONTACT_ARRAYS if (p / f'{name}.npy').exists()]
+def _record_arrays(p: Path, meta: dict, kind: str, names, why_none: str) -> dict | None:
+    """
+    Map-read the arrays of an optional per-sample record (``kind``: 'contact', 'shape').
+
+    Returns None, noting ``why_none`` in ``meta`` unless it says why already, if none of
+    them is there; one missing or unreadable is a DatasetError naming it.
+    """
+    present = [name for name in names if (p / f'{name}.npy').exists()]
     if not present:
-        if 'contact' not in meta:
-            meta['contact'] = {'recorded': False, 'why': NO_CONTACT_RECORD}
-        log.info('%s: no contact record (%s)', p, meta['contact'].get('why'))
+        if kind not in meta:
+            meta[kind] = {'recorded': False, 'why': why_none}
+        log.info('%s: no %s record (%s)', p, kind, meta[kind].get('why'))
         return None
-    if len(present) != len(CONTACT_ARRAYS):
-        missing = sorted(set(CONTACT_ARRAYS) - set(present))
-        raise DatasetError(f'{p}: contact record incomplete, missing {", ".join(missing)}')
+    if len(present) != len(names):
+        missing = sorted(set(names) - set(present))
+        raise DatasetError(f'{p}: {kind} record incomplete, missing {", ".join(missing)}')
     arrays = {}
-    for name in CONTACT_ARRAYS:
+    for name in names:
         f = p / f'{name}.npy'
         try:
             arrays[name] = np.load(f, mmap_mode='r', allow_pickle=False)
         except (OSError, ValueError) as exc:
             raise DatasetError(f'{f}: cannot read: {exc}') from None
+    return arrays
+
+
+def _load_contact(p: Path, meta: dict, n: int) -> ContactRecord | None:
+    arrays = _record_arrays(p, meta, 'contact', CONTACT_ARRAYS, NO_CONTACT_RECORD)
+    if arrays is None:
+        return None
+    for name in CONTACT_ARRAYS:
+        f = p / f'{name}.npy'
         want = np.bool_ if name == 'touching' else np.float32
         if arrays[name].shape != (n,) or arrays[name].dtype != want:
             raise DatasetError(f'{f}: {arrays[name].dtype} {arrays[name].shape}, expected '
@@ -418,22 +433,11 @@ def _load_contact(p: Path, meta: dict, n: int) -> ContactRecord | None:
 
 
 def _load_shape(p: Path, meta: dict, n: int, views: int) -> ShapeRecord | None:
-    present = [name for name in SHAPE_ARRAYS if (p / f'{name}.npy').exists()]
-    if not present:
-        if 'shape' not in meta:
-            meta['shape'] = {'recorded': False, 'why': NO_SHAPE_RECORD}
-        log.info('%s: no shape record (%s)', p, meta['shape'].get('why'))
+    arrays = _record_arrays(p, meta, 'shape', SHAPE_ARRAYS, NO_SHAPE_RECORD)
+    if arrays is None:
         return None
-    if len(present) != len(SHAPE_ARRAYS):
-        missing = sorted(set(SHAPE_ARRAYS) - set(present))
-        raise DatasetError(f'{p}: shape record incomplete, missing {", ".join(missing)}')
-    arrays = {}
     for name in SHAPE_ARRAYS:
         f = p / f'{name}.npy'
-        try:
-            arrays[name] = np.load(f, mmap_mode='r', allow_pickle=False)
-        except (OSError, ValueError) as exc:
-            raise DatasetError(f'{f}: cannot read: {exc}') from None
         if arrays[name].dtype != np.float32 or arrays[name].shape[:2] != (n, views):
             raise DatasetError(f'{f}: {arrays[name].dtype} {arrays[name].shape}, expected '
                                f'float32 ({n}, {views}, ...)')
