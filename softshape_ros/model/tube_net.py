@@ -190,11 +190,14 @@ class VisibilityNet(nn.Module):
     def __init__(self, views: int, channels: int, cond: int, width: int = 16):
         super().__init__()
         cin = views * channels + 2 * views + 2
-        self.inp = nn.Sequential(nn.Conv2d(cin, width, 3, padding=1), nn.ReLU())
+        self.inp = nn.Sequential(nn.Conv2d(in_channels=cin, out_channels=width, kernel_size=3,
+                                           padding=1), nn.ReLU())
         self.down = Stage(down_conv(width, 2 * width), 2 * width)
-        self.mid = Stage(nn.Conv2d(2 * width, 2 * width, 3, padding=2, dilation=2), 2 * width)
+        self.mid = Stage(nn.Conv2d(in_channels=2 * width, out_channels=2 * width, kernel_size=3,
+                                   padding=2, dilation=2), 2 * width)
         self.up = up_conv(2 * width, width)
-        self.head = nn.Conv2d(2 * width, views, 3, padding=1)
+        self.head = nn.Conv2d(in_channels=2 * width, out_channels=views, kernel_size=3,
+                              padding=1)
         nn.init.zeros_(self.head.weight)
         nn.init.constant_(self.head.bias, 4.0)          # visible everywhere at the start
         self.split = [4 * width, 4 * width]
