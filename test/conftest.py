@@ -66,10 +66,20 @@ def rclpy_session():
 
 @pytest.fixture
 def ros(rclpy_session):
-    """Spin a multithreaded executor in a thread; add nodes with ``ros.add(node)``."""
+    """
+    Spin a single-threaded executor in a thread; add nodes with ``ros.add(node)``.
+
+    Not rclpy's MultiThreadedExecutor: with a few 100 Hz streams it kept this process at 100 %
+    of a core (its spin loop re-submits entities whose callbacks are still running), and the
+    threads the nodes run beside it (the simulated cameras, the virtual Due) waited for the
+    interpreter: mock_hardware's 20 Hz free run here skipped 40-105 of its slots, solve and
+    render taking 0.8 ms of CPU and up to 640 ms of wall time. Single-threaded, the same test
+    took 0.4 s of CPU in 1.4 s and skipped none. No node of the package needs a second
+    executor thread: what blocks runs on the node's own worker thread.
+    """
     import gc
 
-    from rclpy.executors import MultiThreadedExecutor
+    from rclpy.executors import SingleThreadedExecutor
 
     from softshape_ros.nodes.common import freeze_heap
     if len(gc.get_objects()) > REFREEZE_OBJECTS:
@@ -77,7 +87,7 @@ def ros(rclpy_session):
 
     class Ros:
         def __init__(self):
-            self.executor = MultiThreadedExecutor(num_threads=4)
+            self.executor = SingleThreadedExecutor()
             self.nodes = []
             # Notified after every executor iteration: waits re-check their condition when
             # something may have changed (a callback ran, or the 50 ms spin slice ended).
