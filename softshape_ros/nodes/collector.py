@@ -20,7 +20,8 @@ from std_msgs.msg import Float64MultiArray, Header, String
 from std_srvs.srv import Trigger
 
 from softshape_ros.nodes.common import (LATCHED_QOS, RELIABLE_QOS, declare_rig_config,
-                                        main_wrapper, ns_to_stamp, stamp_to_ns)
+                                        log_at, main_wrapper, ns_to_stamp,
+                                        stamp_to_ns)
 from softshape_ros.nodes.diagnostics import ERROR, OK, WARN, Updater, fill
 from softshape_ros.nodes.parameters import Param, declare
 from softshape_ros.scene import SceneError, load_session
@@ -175,13 +176,7 @@ class Collector(Node):
         self.pub_trigger.publish(h)
 
     def log(self, level: str, text: str) -> None:
-        logger = self.get_logger()
-        if level == 'info':
-            logger.info(text)
-        elif level == 'warn':
-            logger.warning(text)
-        else:
-            logger.error(text)
+        log_at(self, level, text)
 
     # -- status and shutdown -------------------------------------------------------------------
     def _diagnose(self, stat):

@@ -112,6 +112,21 @@ def publish_diagnostics(node: Node, publisher, statuses: list[DiagnosticStatus])
     publisher.publish(arr)
 
 
+def log_at(node: Node, level: str, text: str) -> None:
+    """
+    Log ``text`` at ``level`` ('info', 'warn'/'warning', else error) through the node's logger.
+
+    One call site per severity: rclpy refuses a call site whose severity changes.
+    """
+    logger = node.get_logger()
+    if level == 'info':
+        logger.info(text)
+    elif level in ('warn', 'warning'):
+        logger.warning(text)
+    else:
+        logger.error(text)
+
+
 def freeze_heap() -> None:
     """
     Move every object alive now out of the garbage collector's sight (``gc.freeze``).

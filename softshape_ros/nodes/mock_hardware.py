@@ -25,7 +25,7 @@ from std_msgs.msg import Float64MultiArray, Header, String
 
 from softshape_ros.nodes.camera_trigger import camera_info_msg, time_reference_msg
 from softshape_ros.nodes.common import (IMAGE_QOS, LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS,
-                                        declare_rig_config, main_wrapper, ns_to_stamp,
+                                        declare_rig_config, log_at, main_wrapper, ns_to_stamp,
                                         numpy_to_image, stamp_to_ns)
 from softshape_ros.nodes.diagnostics import ERROR, OK, WARN, Updater, fill, topic_frequency
 from softshape_ros.nodes.parameters import Param, declare
@@ -189,14 +189,7 @@ class MockHardware(Node):
             return self._advance(), sampled_ns
 
     def _log(self, level: str, message: str) -> None:
-        """Log at ``level``; one call site per severity (rclpy refuses a site that changes it)."""
-        logger = self.get_logger()
-        if level == 'info':
-            logger.info(message)
-        elif level in ('warn', 'warning'):
-            logger.warning(message)
-        else:
-            logger.error(message)
+        log_at(self, level, message)
 
     def _publish_frames(self, f: Frames) -> None:
         stamp = ns_to_stamp(f.stamp_ns)
