@@ -1,5 +1,6 @@
 """
-Renderer benchmark: stereo frames at 640x480 and 1920x1080, and the two 64x64 network inputs.
+Renderer benchmark: stereo frames at 640x480 and 1920x1080, and the two 64x64 network inputs
+(at render_inputs's default supersample of 4, and at the 3 `softshape simulate` uses).
 
 Reports (never asserts) median wall and CPU times on one core (the process is pinned to one
 CPU) over the seven reference scenes of test/data/render_reference (robot alone, each
@@ -92,6 +93,10 @@ def measure(repeat: int) -> dict:
         return rig.render_inputs(st)
     inputs.args = lambda c: (cfg, c)
 
+    def inputs_ss3(rig, st):                       # what `softshape simulate` renders
+        return rig.render_inputs(st, supersample=3)
+    inputs_ss3.args = lambda c: (cfg, c)
+
     hd_cfg = _hd_config(cfg)
 
     def stereo_hd(rig, st):
@@ -104,6 +109,7 @@ def measure(repeat: int) -> dict:
     out = {'first_render_s': round(first, 2),       # includes numba's compile or cache load
            'stereo_640x480': timed(stereo),
            'inputs_2x64x64': timed(inputs),
+           'inputs_2x64x64_supersample_3': timed(inputs_ss3),
            'stereo_1920x1080': timed(stereo_hd)}
     diffs, panels = [], []
     for c in cases:
@@ -172,6 +178,7 @@ def run() -> dict:
         if 'error' not in b:
             out['speedup_median'] = {k: round(b[k]['median_ms'] / n[k]['median_ms'], 1)
                                      for k in ('stereo_640x480', 'inputs_2x64x64',
+                                               'inputs_2x64x64_supersample_3',
                                                'stereo_1920x1080') if k in b}
     out['load_average_after'] = os.getloadavg()
     return out
