@@ -1,6 +1,7 @@
 """
-Renderer benchmark: stereo frames at 640x480 and 1920x1080, and the two 64x64 network inputs
-(at render_inputs's default supersample of 4, and at the 3 `softshape simulate` uses).
+Renderer benchmark: stereo frames at 640x480 and 1920x1080, and the two 64x64 network inputs.
+
+The inputs at render_inputs's default supersample of 4, and at the 3 `softshape simulate` uses.
 
 Reports (never asserts) median wall and CPU times on one core (the process is pinned to one
 CPU) over the seven reference scenes of test/data/render_reference (robot alone, each
