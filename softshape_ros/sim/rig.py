@@ -41,6 +41,10 @@ STAGE_TOL = 1e-6            # relative residual of the softened stages (only sta
 # the points' positions off the strain's tangent by up to 3e-5 in slope, enough to move a
 # critical point by 0.3 mm and keep the forces from being the potential's gradient there.
 FINE_QUADRATURE = 2
+# The passes over STIFFENING_STAGES, in order: (at FINE_QUADRATURE, with the crease test).
+# Strict first at both quadratures; the crease test only after every strict attempt failed,
+# last at the finer nodes (row 75309 of the 100 000-sample plan converges only there).
+CONTACT_PASSES = ((False, False), (True, False), (False, True), (True, True))
 
 
 @dataclass
@@ -201,13 +205,11 @@ class SimRig:
         1/10 first; from the straight rod with 1/100, 1/10, 1; then all of them again with
         ``FINE_QUADRATURE`` times the Gauss nodes; only then the same stages with the crease
         test (``statics.CREASE_MOTION_M``), at the rig's quadrature and last at the finer one
-        (a line contact whose flat gap profile the coarse nodes misplace by more than the
-        crease test's motion, row 75309 of the 100 000-sample plan). Returns (q,
-        assembly, iterations, the rod solved on); the last failure raises
-        :class:`SolverError`.
+        (``CONTACT_PASSES``). Returns (q, assembly, iterations, the rod solved on); the last
+        failure raises :class:`SolverError`.
         """
         its, error = 0, None
-        for fine, crease in ((False, False), (True, False), (False, True), (True, True)):
+        for fine, crease in CONTACT_PASSES:
             rod, statics = self._fine_model() if fine else (self.rod, self.statics)
             for start, stages in STIFFENING_STAGES:
                 q = q0 if start == 'touching' else None
