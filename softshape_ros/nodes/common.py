@@ -10,6 +10,7 @@ from __future__ import annotations
 import gc
 import signal
 import sys
+import threading
 from typing import Callable
 
 import numpy as np
@@ -153,8 +154,9 @@ def run_node(factory: Callable[[], Node], args=None, multithreaded: bool = False
     Nodes may define ``on_shutdown()`` (e.g. vent the pressures); it runs after spinning
     stops and before the node is destroyed, whatever stopped it, with the ROS context still
     up so it can publish. For that, rclpy's own signal handlers (which shut the context down
-    first) are not installed: SIGINT/SIGTERM raise KeyboardInterrupt, and the executor spins
-    in 0.1 s slices so the interrupt is seen promptly.
+    first) are not installed. While the node is being made SIGINT/SIGTERM raise
+    KeyboardInterrupt; once it spins they only end the loop (``_stop_on_signals``), which
+    spins in 0.1 s slices so the signal is seen promptly.
     """
     try:
         transport = configure_transport()
@@ -172,7 +174,8 @@ def run_node(factory: Callable[[], Node], args=None, multithreaded: bool = False
         executor = MultiThreadedExecutor() if multithreaded else SingleThreadedExecutor()
         executor.add_node(node)
         freeze_heap()
-        while rclpy.ok():
+        stop = _stop_on_signals()
+        while rclpy.ok() and not stop.is_set():
             executor.spin_once(timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
@@ -196,6 +199,21 @@ def run_node(factory: Callable[[], Node], args=None, multithreaded: bool = False
         if rclpy.ok():
             rclpy.try_shutdown()
     return code
+
+
+def _stop_on_signals() -> threading.Event:
+    """
+    Make SIGINT/SIGTERM set the returned event instead of raising KeyboardInterrupt.
+
+    Raised while the executor is inside one of rclpy's C calls (e.g. taking a service
+    request), the interrupt comes out as a SystemError ("returned a result with an exception
+    set"): a clean Ctrl-C exited 1 now and then. Only the main thread may set handlers.
+    """
+    stop = threading.Event()
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: stop.set())
+    return stop
 
 
 def main_wrapper(factory: Callable[[], Node]) -> Callable[[], int]:
