@@ -37,7 +37,7 @@ def test_silhouette_iou_and_tip_separate_good_from_copy():
     assert np.all(sil.base_rc[:, 0] < 10) and np.all(np.abs(sil.base_rc[:, 1] - 32) < 3)
 
 
-@pytest.mark.parametrize('arch', ['paper', 'ours'])
+@pytest.mark.parametrize('arch', ['paper', 'ours', 'tube'])
 def test_onnx_export_matches_pytorch(arch, tmp_path):
     torch.manual_seed(1)
     net = build_network(arch, 2, 3)

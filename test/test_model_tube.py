@@ -10,10 +10,11 @@ import torch
 from softshape_ros.config import load_rig_config
 from softshape_ros.data import DatasetError, DatasetWriter, load_dataset
 from softshape_ros.model import Predictor, build_network, load_checkpoint
-from softshape_ros.model.data import shape_tensors
+from softshape_ros.model.data import SCENE_FEATURES, scene_targets, scene_vector, shape_tensors
 from softshape_ros.model.metrics import RobotSilhouette
 from softshape_ros.model.train import TrainConfig, train
 from softshape_ros.model.tube_render import coverage, tube_field
+from softshape_ros.scene import OBJECT_DIMS, Scene
 from softshape_ros.sim.generate import SHAPE_KEYPOINTS, generate, make_plan
 
 CFG = load_rig_config()
@@ -132,11 +133,62 @@ def test_bad_shape_records_are_refused_and_lose_nothing(tmp_path, simulated):
         (tmp_path / 'saved.npy').rename(simulated.path / 'radius_px.npy')
 
 
+def test_scene_targets_describe_the_recorded_placements(simulated):
+    import dataclasses
+    from types import SimpleNamespace
+    ds = load_dataset(simulated.path)
+    t = scene_targets(ds, np.arange(len(ds)))
+    assert t.shape == (len(ds), len(SCENE_FEATURES)) and torch.isfinite(t).all()
+    scenes = [Scene.from_json(s) for s in ds.meta['scenes']]
+    for i in (0, len(ds) // 2, len(ds) - 1):
+        sc, row = scenes[int(ds.scene[i])], dict(zip(SCENE_FEATURES, t[i].tolist()))
+        assert row[f'is_{sc.object}'] == 5.0
+        assert sum(row[f'is_{k}'] for k in OBJECT_DIMS) == 5.0
+        assert [row['x_mm'], row['y_mm'], row['z_mm']] == pytest.approx(
+            [1000 * v for v in sc.position_m], rel=1e-5)
+    # A cylinder's yaw is not in the images, a ring's half turn neither; a quarter turn is.
+    cyl = Scene(0, 'cylinder', (0.02, 0.0, 0.03), (0.0, 0.0, 1.0),
+                {'radius_m': 0.005, 'height_m': 0.04})
+    assert scene_vector(cyl) == scene_vector(dataclasses.replace(cyl, rpy_rad=(0, 0, 2.0)))
+    ring = Scene(1, 'ring', (0.02, 0.0, 0.03), (math.pi / 2, 0.0, 0.3),
+                 {'major_radius_m': 0.01, 'minor_radius_m': 0.003})
+    half = scene_vector(dataclasses.replace(ring, rpy_rad=(math.pi / 2, 0.0, 0.3 + math.pi)))
+    quarter = scene_vector(dataclasses.replace(ring, rpy_rad=(math.pi / 2, 0, 0.3 + math.pi / 2)))
+    assert half == pytest.approx(scene_vector(ring)) and quarter != pytest.approx(half)
+    # Datasets built from bags carry the session's scenes by index.
+    bag = SimpleNamespace(meta={'scenes': [{'bag': 'b', 'scene_id': 7, 'index': 1,
+                                            'scene': json.loads(ring.to_json())}]},
+                          scene=np.array([1, 1]))
+    assert scene_targets(bag, [0, 1]).tolist() == [pytest.approx(scene_vector(ring))] * 2
+    # Unknown placements: no targets (the model learns from the images alone).
+    assert scene_targets(SimpleNamespace(meta={'scenes': 4}, scene=np.zeros(2)), [0]) is None
+    assert scene_targets(SimpleNamespace(meta=bag.meta, scene=np.array([2])), [0]) is None
+    broken = {'scenes': [{'index': 1, 'scene': {'id': 1, 'object': 'ring'}}]}
+    assert scene_targets(SimpleNamespace(meta=broken, scene=np.array([1])), [0]) is None
+
+
+def test_the_scene_encoder_learns_to_see_the_placement(simulated):
+    """A short keypoint training tells the encoder where the object is (the scene term)."""
+    ds = load_dataset(simulated.path)
+    cfg = TrainConfig(arch='tube', loss='keypoints', batch_size=16, max_steps=150,
+                      eval_every=50, patience=100, seed=0, threads=1)
+    idx = np.arange(len(ds))
+    x = torch.from_numpy(np.asarray(ds.initial).reshape(len(ds), -1, 64, 64)).float() / 255
+    want = scene_targets(ds, idx)
+    pos = [SCENE_FEATURES.index(k) for k in ('x_mm', 'y_mm', 'z_mm')]
+    spread = float((want[:, pos] - want[:, pos].mean(0)).abs().mean())
+    net = train(ds, cfg, progress=False).model
+    with torch.no_grad():
+        got = net.keypoints.scene(x)[1]
+    err = float((got[:, pos] - want[:, pos]).abs().mean())
+    assert err < 0.5 * spread, (err, spread)
+
+
 def test_short_tube_training_beats_copy_on_touching_samples(simulated, tmp_path):
     from softshape_ros.model.evaluate import predict_rows
     from softshape_ros.model.metrics import evaluate_arrays
     ds = load_dataset(simulated.path)
-    cfg = TrainConfig(arch='tube', batch_size=16, max_steps=120, eval_every=40, patience=100,
+    cfg = TrainConfig(arch='tube', batch_size=16, max_steps=200, eval_every=40, patience=100,
                       seed=0, threads=1, split='scene')
     res = train(ds, cfg, out=tmp_path / 'ck', progress=False)
     val = np.asarray(res.config['dataset']['val_rows'])

@@ -7,10 +7,20 @@ validation (or test) images show scenes the network has never seen.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import torch
 
+from softshape_ros.scene import OBJECT_DIMS, Scene, SceneError
+
 SPLITS = ('random', 'scene')
+#: What :func:`scene_targets` says of an object placement, in this order (17 numbers).
+SCENE_FEATURES = (*(f'is_{kind}' for kind in OBJECT_DIMS), 'x_mm', 'y_mm', 'z_mm',
+                  'roll', 'pitch', 'sin_2yaw', 'cos_2yaw', 'dim0', 'dim1', 'dim2', 'dim3')
+# Objects that look the same at every yaw: their yaw is not in the images.
+_ROUND = ('none', 'cylinder', 'sphere', 'plane')
+_UNIT = 5.0             # one-hot and angle features in units comparable to millimetres
 
 
 def split_indices(scene, idx, mode: str, fraction: float, seed: int):
@@ -99,3 +109,49 @@ def no_contact_why(ds) -> str:
     """Say why a dataset has no contact record (the reason its loader recorded)."""
     why = (ds.meta.get('contact') or {}).get('why') if isinstance(ds.meta, dict) else None
     return f'no contact record ({why})' if why else 'the dataset has no contact record'
+
+
+def scene_vector(scene: Scene) -> list[float]:
+    """
+    Return one placement as the :data:`SCENE_FEATURES` numbers the tube model learns to see.
+
+    Kind one-hot, position and dimensions in mm, roll and pitch, yaw as sin/cos of twice
+    it (rings and prisms look the same turned by half a turn; round objects get 0), every
+    angle and the one-hot x 5 so that each is weighed like a few millimetres.
+    """
+    kind = [_UNIT * (scene.object == k) for k in OBJECT_DIMS]
+    roll, pitch, yaw = scene.rpy_rad
+    turn = [0.0, 0.0] if scene.object in _ROUND else [_UNIT * math.sin(2 * yaw),
+                                                      _UNIT * math.cos(2 * yaw)]
+    dims = [v * (1000.0 if k.endswith('_m') else _UNIT) for k, v in scene.dims.items()]
+    return (kind + [1000.0 * v for v in scene.position_m] + [_UNIT * roll, _UNIT * pitch]
+            + turn + dims + [0.0] * (4 - len(dims)))
+
+
+def scene_targets(ds, idx):
+    """
+    Return rows ``idx`` (sorted) as N x 17 :data:`SCENE_FEATURES` of their placement, or None.
+
+    From the placements the dataset's meta records (simulated datasets: every scene;
+    datasets built from bags: the session YAML's scenes). None where any row's placement
+    is unknown: the tube model then learns the scene from the images alone.
+    """
+    scenes = ds.meta.get('scenes') if isinstance(ds.meta, dict) else None
+    if not isinstance(scenes, list) or not scenes:
+        return None
+    table = {}
+    try:
+        for i, s in enumerate(scenes):
+            if isinstance(s, str):                  # simulate: the scenes' JSON, in id order
+                table[i] = Scene.from_json(s)
+            elif isinstance(s, dict) and 'index' in s:   # build-dataset: index -> scene
+                table[int(s['index'])] = Scene.from_dict(s['scene'])
+            else:
+                return None
+    except (SceneError, KeyError, TypeError, ValueError):
+        return None
+    ids = np.asarray(ds.scene)[np.sort(np.asarray(idx, dtype=np.int64))]
+    if not all(int(i) in table for i in np.unique(ids)):
+        return None
+    vec = {i: scene_vector(sc) for i, sc in table.items()}
+    return torch.tensor([vec[int(i)] for i in ids], dtype=torch.float32)

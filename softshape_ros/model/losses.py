@@ -72,6 +72,7 @@ class TubeWeights:
     keypoints: float = 1.0      # L1 of x, y, radius (and depth x ``depth``) vs the record
     depth: float = 0.1
     free: float = 0.5           # L1 of the free-shape head on samples that touch nothing
+    scene: float = 1.0          # squared error of the scene description (in spreads)
     image: float = 20.0         # L1 of the composite from the predicted keypoints
     teacher: float = 20.0       # ... and from the true ones (background, visibility, shade)
     background: float = 20.0    # L1 of the background where the true robot is not
@@ -80,10 +81,11 @@ class TubeWeights:
 
 class TubeLoss:
     """
-    The tube model's objective; ``__call__(model, x, p, t, truth, free) -> (loss, image)``.
+    The tube model's objective; ``__call__(model, x, p, t, truth, free, scene) -> (loss, image)``.
 
     ``truth``: B x V x K x 4 keypoints of the shape record, or None (recorded bags: the image
-    term alone); ``free``: B bool, the samples touching nothing (None: unknown).
+    term alone); ``free``: B bool, the samples touching nothing (None: unknown); ``scene``:
+    B x 17 :func:`~softshape_ros.model.data.scene_targets` of the placements (None: unknown).
     ``keypoints_only``: the keypoint terms alone, nothing drawn (a fast first phase; the
     image is then None). ``threshold``: the robot's luminance threshold ([0, 1] units; None:
     no visibility term): inside the true tube the target shows the robot where it is
@@ -103,15 +105,29 @@ class TubeLoss:
             loss = loss + w.free * ((free_kp[free] - truth[free]).abs() * ch).mean()
         return loss
 
-    def __call__(self, model, x, p, t, truth=None, free=None):
+    def _scene(self, model, described, scene):
+        """
+        Tell the scene encoder what the placement is, where it is known.
+
+        Squared error in units of the training placements' spread: under L1 the encoder
+        settled on the median placement for every scene and stayed there.
+        """
+        if scene is None or not self.w.scene:
+            return 0.0
+        net = getattr(model, 'module', model)                # DDP wraps the network
+        spread = net.keypoints.scene.spread
+        return self.w.scene * (((described - scene) / spread) ** 2).mean()
+
+    def __call__(self, model, x, p, t, truth=None, free=None, scene=None):
         w = self.w
         if self.keypoints_only:
             if truth is None:
                 raise ValueError('keypoint training needs a dataset with a shape record')
-            kp, free_kp = model(x, p, parts='keypoints')
-            return self._keypoints(kp, free_kp, truth, free, x.dtype), None
+            kp, free_kp, described = model(x, p, parts='keypoints')
+            return (self._keypoints(kp, free_kp, truth, free, x.dtype)
+                    + self._scene(model, described, scene)), None
         out = model(x, p, truth, parts=True)
-        loss = w.image * F.l1_loss(out.image, t)
+        loss = w.image * F.l1_loss(out.image, t) + self._scene(model, out.scene, scene)
         if truth is None:
             return loss, out.image
         loss = loss + self._keypoints(out.keypoints, out.free_keypoints, truth, free, x.dtype)
@@ -137,6 +153,6 @@ class PixelLoss:
     def __init__(self, loss: ImageLoss):
         self.loss = loss
 
-    def __call__(self, model, x, p, t, truth=None, free=None):
+    def __call__(self, model, x, p, t, truth=None, free=None, scene=None):
         y = model(x, p)
         return self.loss(y, t), y

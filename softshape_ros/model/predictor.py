@@ -20,7 +20,7 @@ class Predictor:
 
     def __init__(self, model: torch.nn.Module, config: dict):
         self.model = model.eval()
-        if hasattr(model, 'cache'):     # tube: the scene's background once per rest image
+        if hasattr(model, 'cache'):     # tube: scene code and background once per rest image
             model.cache = True
         self.config = config
         self.views = list(config['views'])

@@ -27,7 +27,8 @@ from softshape_ros.data import load_dataset
 from softshape_ros.model import data as model_data
 from softshape_ros.model import layers, losses, networks, tube_net, tube_render
 from softshape_ros.model.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-from softshape_ros.model.data import shape_tensors, split_indices, to_float, to_tensors
+from softshape_ros.model.data import (
+    scene_targets, shape_tensors, split_indices, to_float, to_tensors)
 from softshape_ros.model.losses import ImageLoss, PixelLoss, TubeLoss
 from softshape_ros.model.metrics import RobotSilhouette
 from softshape_ros.model.networks import build_network
@@ -90,8 +91,9 @@ class Rows:
     val_idx: np.ndarray
     train: tuple            # (initial uint8, target uint8, pressure float) N x VC x S x S
     val: tuple
-    train_shape: tuple = (None, None)   # (keypoints N x V x K x 4, free N bool) or None
-    val_shape: tuple = (None, None)
+    # (keypoints N x V x K x 4, free N bool, scene N x 17), each None where not recorded
+    train_shape: tuple = (None, None, None)
+    val_shape: tuple = (None, None, None)
 
 
 def _dist():
@@ -201,9 +203,11 @@ def _rows(ds, config, indices, rank, world) -> Rows:
     maxp = ds.max_pressure_pa
     val = to_tensors(ds, va_idx, maxp, as_uint8=True)
     vs = slice(rank * len(va_idx) // world, (rank + 1) * len(va_idx) // world)
-    val_shape = tuple(None if t is None else t[vs] for t in shape_tensors(ds, va_idx))
+    val_shape = tuple(None if t is None else t[vs] for t in (
+        *shape_tensors(ds, va_idx), scene_targets(ds, va_idx)))
     return Rows(tr_idx, va_idx, to_tensors(ds, tr_idx, maxp, as_uint8=True),
-                tuple(t[vs] for t in val), shape_tensors(ds, tr_idx), val_shape)
+                tuple(t[vs] for t in val),
+                (*shape_tensors(ds, tr_idx), scene_targets(ds, tr_idx)), val_shape)
 
 
 def _network(ds, config, rows, sil):
@@ -220,6 +224,8 @@ def _network(ds, config, rows, sil):
             with torch.no_grad():
                 net.set_template(truth.mean(0) if truth is not None else rest_template(
                     rows.train[0][:256].numpy(), sil, len(ds.views), net.keypoints.k))
+                net.keypoints.scene.set_stats(to_float(rows.train[0][:2000]),
+                                              rows.train_shape[2])
         return net, params, None
     net, cfg = load_checkpoint(config.init)
     want = {'arch': config.arch, 'views': ds.views, 'channels': ds.channels,
@@ -245,7 +251,7 @@ def _learning_rate(config) -> float:
 
 
 def _take(extra, idx):
-    """Rows ``idx`` of the optional (keypoints, free) tensors."""
+    """Rows ``idx`` of the optional (keypoints, free, scene) tensors."""
     return tuple(None if t is None else t[idx] for t in extra)
 
 
@@ -266,8 +272,9 @@ def _validate(net, val, extra, objective, chunk=256):
 
 def _fit(net, rows, objective, config, lr, rank, world, progress, desc) -> dict:
     """Run the optimisation: seeded batches, validation rounds, early stopping."""
-    # The keypoint phase of the tube model leaves its drawing parts without gradients.
-    unused = bool(getattr(objective, 'keypoints_only', False))
+    # The keypoint phase of the tube model leaves its drawing parts without gradients, and
+    # data without recorded placements its scene description.
+    unused = isinstance(objective, TubeLoss)
     model = (torch.nn.parallel.DistributedDataParallel(net, find_unused_parameters=unused)
              if world > 1 else net)
     opt = torch.optim.Adam(net.parameters(), lr=lr)

@@ -9,16 +9,18 @@ over the scene with the robot removed, hidden where the object stands in front o
     out = a v shade + (1 - a v) background
 
 - **Keypoints** (:class:`KeypointNet`): an MLP of the pressures gives the free shape
-  (offsets from a template, the dataset's mean shape); a CNN over the rest images, that
-  free shape drawn in (coverage at 16x16), coordinate planes and FiLM of the pressures at
-  every stage corrects it where the object is in the way.
+  (offsets from a template, the dataset's mean shape); an MLP of the pressures and a scene
+  code corrects it where the object is in the way. The code comes from a CNN over the rest
+  images alone (:class:`SceneEncoder`), which also reads the object's kind, position and
+  size back out of it: trained against the placement where it is known.
 - **Background** (:class:`BackgroundNet`): the rest image outside the resting robot's
-  tube (the free shape at zero pressure), a small U-Net's fill inside it. It depends only
-  on the scene, so inference computes it once per scene (``cache``).
+  tube (the free shape at zero pressure), a small U-Net's fill inside it. Code and
+  background depend only on the scene, so inference computes them once per scene (``cache``).
 - **Visibility**: a small FiLM CNN over the rest images, the drawn coverage and depth: where
   the object is in front of the robot, the object's pixels stay.
 
-Trained on the simulator's shape record (``ds.shape``) with keypoint L1 in px, plus an L1
+Trained on the simulator's shape record (``ds.shape``) with keypoint L1 in px, an L1 of
+the scene description against the recorded placement (``data.scene_targets``), plus an L1
 image loss of the composite (with the predicted keypoints, and with the true ones so the
 background, visibility and shading learn from exact shapes) and a masked L1 of the
 background where the true robot is not; on recorded bags (no shape record) with the image
@@ -34,6 +36,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from softshape_ros.model.layers import Stage, coordinate_planes, down_conv, up_conv
+from softshape_ros.model.data import SCENE_FEATURES
 from softshape_ros.model.tube_render import R, X, Y, TubeField, TubeShader, coverage, tube_field
 
 N_PRESSURES = 6
@@ -41,7 +44,6 @@ KEYPOINTS = 16
 # Output scale of the keypoint heads per channel (x, y, radius, depth; px): the MLPs work
 # in units of about one.
 KEYPOINT_SCALE = (8.0, 8.0, 0.5, 8.0)
-FREE_COVERAGE_SIZE = 16
 
 
 class TubeOutput(NamedTuple):
@@ -55,6 +57,15 @@ class TubeOutput(NamedTuple):
     teacher: torch.Tensor | None    # the composite drawn from the true keypoints, if given
     teacher_coverage: torch.Tensor | None   # B x V x S x S: the true keypoints' tube
     teacher_visibility: torch.Tensor | None  # B x V x S x S logits: robot in front there
+    scene: torch.Tensor             # B x 17: the object as the scene code describes it
+
+
+class SceneParts(NamedTuple):
+    """What the model makes of the rest images alone (the same for every actuation)."""
+
+    code: torch.Tensor              # B x code
+    described: torch.Tensor         # B x 17 SCENE_FEATURES read back from the code
+    background: torch.Tensor        # B x VC x S x S: the scene with the robot removed
 
 
 def mlp(cin: int, hidden: int, cout: int, zero_last: bool = True) -> nn.Sequential:
@@ -67,32 +78,68 @@ def mlp(cin: int, hidden: int, cout: int, zero_last: bool = True) -> nn.Sequenti
     return net
 
 
-class FiLMEncoder(nn.Module):
-    """Strided FiLM stages down to S/16; returns the flattened last map (B x w S^2/256)."""
+class SceneEncoder(nn.Module):
+    """
+    Rest images -> a scene code (B x code) and what the code says of the object (B x 17).
 
-    def __init__(self, cin: int, widths, cond: int):
+    Strided convolutions (GroupNorm, ReLU) over the stacked views, less the training set's
+    mean rest image, and coordinate planes down to S/16; an MLP to the code. It never sees
+    the pressures: one code per scene (inference caches it). The second output reads the
+    object's kind, position and size back out of the code
+    (:data:`~softshape_ros.model.data.SCENE_FEATURES`, in units of the training placements'
+    spread), so that where the placement is known (the simulator; a session YAML) training
+    can tell the encoder what to see. Why the mean image and the norms: rest images differ
+    only where the object is; on the raw images every scene gave the same features and
+    the convolutions' ReLUs died within 300 steps (99 % zeros), the code constant.
+    """
+
+    def __init__(self, channels: int, size: int, widths=(32, 64, 96, 128), code: int = 64,
+                 hidden: int = 512):
         super().__init__()
-        self.stages = nn.ModuleList()
+        layers, cin = [], channels
         for w in widths:
-            self.stages.append(Stage(down_conv(cin, w), w))
+            layers += [down_conv(cin, w), nn.GroupNorm(8, w), nn.ReLU(),
+                       nn.Conv2d(in_channels=w, out_channels=w, kernel_size=3, padding=1),
+                       nn.GroupNorm(8, w), nn.ReLU()]
             cin = w
-        self.split = [2 * st.channels for st in self.stages]
-        self.film = nn.Linear(cond, sum(self.split))
-        nn.init.zeros_(self.film.weight)
-        nn.init.zeros_(self.film.bias)
+        self.convs = nn.Sequential(*layers)
+        feat = widths[-1] * (size // 2 ** len(widths)) ** 2
+        self.code = nn.Sequential(nn.Linear(feat, hidden), nn.LayerNorm(hidden), nn.ReLU(),
+                                  nn.Linear(hidden, code))
+        self.describe = nn.Linear(code, len(SCENE_FEATURES))
+        self.register_buffer('mean_image', torch.zeros(channels, size, size))
+        self.register_buffer('std_image', torch.ones(channels, size, size))
+        self.register_buffer('mean', torch.zeros(len(SCENE_FEATURES)))
+        self.register_buffer('spread', torch.ones(len(SCENE_FEATURES)))
 
-    def forward(self, x: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
-        films = self.film(cond)[:, :, None, None].split(self.split, 1)
-        for stage, f in zip(self.stages, films):
-            x = stage(x, *f.chunk(2, 1))                            # B x w x s/2 x s/2
-        return x.flatten(1)
+    def set_stats(self, images: torch.Tensor, targets: torch.Tensor | None = None) -> None:
+        """Take the mean of N x VC x S x S training rest images, and of N x 17 targets."""
+        self.mean_image.copy_(images.mean(0))
+        if len(images) > 1:
+            self.std_image.copy_(images.std(0).clamp_min(0.02))
+        if targets is not None and len(targets) > 1:
+            self.mean.copy_(targets.mean(0))
+            self.spread.copy_(targets.std(0).clamp_min(1.0))
+
+    def forward(self, image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        x = (image - self.mean_image) / self.std_image               # B x VC x S x S
+        z = self.code(self.convs(x).flatten(1))                      # B x code
+        return z, self.mean + self.spread * self.describe(z)         # B x 17
 
 
 class KeypointNet(nn.Module):
-    """Pressures (and the rest images) -> B x V x K x 4 keypoints: free shape + correction."""
+    """
+    Pressures and a scene code -> B x V x K x 4 keypoints: the free shape + the object's push.
+
+    The free shape is an MLP of the pressures alone; the correction an MLP of the pressures
+    and the :class:`SceneEncoder`'s code. Why this split: given the object's true placement,
+    an MLP of it and the pressures predicts the touching robot's tip within 0.8 px on unseen
+    placements (docs/model.md); what is hard is seeing the placement, which the encoder
+    learns once per scene instead of once per actuation.
+    """
 
     def __init__(self, views: int, channels: int, keypoints: int, size: int,
-                 widths=(16, 32, 64, 64), cond: int = 64, hidden: int = 256):
+                 cond: int = 64, hidden: int = 512, code: int = 64):
         super().__init__()
         self.views, self.k = views, keypoints
         out = views * keypoints * 4
@@ -103,36 +150,25 @@ class KeypointNet(nn.Module):
         template[..., R] = size / 16
         self.register_buffer('template', template)
         self.register_buffer('scale', torch.tensor(KEYPOINT_SCALE))
-        self.register_buffer('centre_shift', torch.tensor([1.0, 1.0, 0.0, 0.0]))
         self.free = mlp(N_PRESSURES, 128, out)
+        # The pressures' embedding, for the visibility network's FiLM.
         self.cond = nn.Sequential(nn.Linear(N_PRESSURES, cond), nn.ReLU(),
                                   nn.Linear(cond, cond), nn.ReLU())
-        self.encoder = FiLMEncoder(views * channels + views + 2, widths, cond)
-        feat = widths[-1] * (size // 2 ** len(widths)) ** 2
-        self.correct = mlp(feat + cond, hidden, out)
+        self.scene = SceneEncoder(views * channels, size, code=code, hidden=hidden)
+        self.correct = nn.Sequential(nn.Linear(N_PRESSURES + code, hidden), nn.ReLU(),
+                                     mlp(hidden, hidden, out))
 
     def rest(self) -> torch.Tensor:
         """Return the free shape at zero pressure (V x K x 4): the resting robot."""
         zero = self.scale.new_zeros(1, N_PRESSURES)
         return self.template + self.free(zero).view(self.views, self.k, 4) * self.scale
 
-    def forward(self, image: torch.Tensor, pressure: torch.Tensor):
-        """Return (keypoints, free keypoints), each B x V x K x 4, and the FiLM embedding."""
-        b = image.shape[0]
-        shape = (b, self.views, self.k, 4)
+    def forward(self, code: torch.Tensor, pressure: torch.Tensor):
+        """B x code scene codes + B x 6 pressures -> (keypoints, free keypoints, embedding)."""
+        shape = (pressure.shape[0], self.views, self.k, 4)
         free = self.template + self.free(pressure).view(shape) * self.scale
-        # The free shape drawn coarsely, so the CNN sees where it meets the object.
-        s = image.shape[-1]
-        f = FREE_COVERAGE_SIZE / s                                     # pixel centres:
-        small = free.detach() * f + self.centre_shift * (0.5 * f - 0.5)   # x' = (x + .5) f - .5
-        cov = coverage(tube_field(small, FREE_COVERAGE_SIZE).sd).view(
-            b, self.views, FREE_COVERAGE_SIZE, FREE_COVERAGE_SIZE)
-        cov = F.interpolate(cov, size=(s, s), mode='nearest')         # B x V x S x S
-        cond = self.cond(pressure)
-        x = torch.cat([image, cov, coordinate_planes(b, s, s, image)], 1)
-        z = self.encoder(x, cond)                                    # B x feat
-        corr = self.correct(torch.cat([z, cond], 1)).view(shape) * self.scale
-        return free + corr, free, cond
+        corr = self.correct(torch.cat([pressure, code], 1)).view(shape) * self.scale
+        return free + corr, free, self.cond(pressure)
 
 
 class BackgroundNet(nn.Module):
@@ -253,21 +289,25 @@ class TubeNet(nn.Module):
         self.background = BackgroundNet(views, channels)
         self.visibility = VisibilityNet(views, channels, cond)
         self.shader = TubeShader(views, channels)
-        self.cache = False              # inference: keep the last scene's background
+        self.cache = False              # inference: keep the last scene's SceneParts
         self._cached = None
 
     def set_template(self, keypoints: torch.Tensor) -> None:
         """Set the keypoint template (V x K x 4, px): the shape the heads start from."""
         self.keypoints.template.copy_(keypoints)
 
-    def scene_background(self, image: torch.Tensor) -> torch.Tensor:
-        """Return the background of ``image``: once per scene while ``cache`` is on."""
+    def scene_parts(self, image: torch.Tensor) -> SceneParts:
+        """Return what depends on the rest images alone: once per scene while ``cache`` is on."""
         if not self.cache or torch.is_grad_enabled():
-            return self.background(image, self.keypoints.rest())
+            return self._scene_parts(image)
         c = self._cached
         if c is None or c[0].shape != image.shape or not torch.equal(c[0], image):
-            c = self._cached = (image.clone(), self.background(image, self.keypoints.rest()))
+            c = self._cached = (image.clone(), self._scene_parts(image))
         return c[1]
+
+    def _scene_parts(self, image: torch.Tensor) -> SceneParts:
+        code, described = self.keypoints.scene(image)
+        return SceneParts(code, described, self.background(image, self.keypoints.rest()))
 
     def render(self, keypoints, image, background, cond):
         """Compose the tube over ``background``: (image, alpha, coverage, visibility logits)."""
@@ -289,16 +329,18 @@ class TubeNet(nn.Module):
         B x VC x S x S images in [0, 1] + B x 6 pressures -> the predicted images.
 
         ``parts``: return the whole :class:`TubeOutput` instead (``'keypoints'``: only the
-        keypoints and the free shape, nothing drawn); ``truth`` (B x V x K x 4, the shape
-        record) also draws the composite from the true keypoints (``teacher``).
+        keypoints, the free shape and the scene description, nothing drawn); ``truth`` (B x
+        V x K x 4, the shape record) also draws the composite from the true keypoints.
         """
-        kp, free, cond = self.keypoints(image, pressure)
         if parts == 'keypoints':
-            return kp, free
-        bg = self.scene_background(image)
-        out, alpha, _, _ = self.render(kp, image, bg, cond)
+            code, described = self.keypoints.scene(image)
+            return (*self.keypoints(code, pressure)[:2], described)
+        scene = self.scene_parts(image)
+        kp, free, cond = self.keypoints(scene.code, pressure)
+        out, alpha, _, _ = self.render(kp, image, scene.background, cond)
         if not parts:
             return out
         teacher, _, cov, vis = (None,) * 4 if truth is None else self.render(
-            truth, image, bg, cond)
-        return TubeOutput(out, kp, free, bg, alpha, teacher, cov, vis)
+            truth, image, scene.background, cond)
+        return TubeOutput(out, kp, free, scene.background, alpha, teacher, cov, vis,
+                          scene.described)
