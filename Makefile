@@ -19,12 +19,13 @@ export PYTHONUNBUFFERED := 1
 SOURCES := $(shell find softshape_ros config launch resource -type f -not -path '*/__pycache__/*' 2>/dev/null)
 ARGS ?=
 
-.PHONY: help setup venv build demo test bench clean
+.PHONY: help setup venv build demo test bench pretrain clean
 
 help:
 	@echo "make demo   - set up, then run the whole pipeline on the simulated rig (see README)"
 	@echo "make test   - set up, then run the test suite"
 	@echo "make bench  - set up, then run the benchmarks (JSON on stdout)"
+	@echo "make pretrain - rebuild models/ours_stereo_gray on simulation (ARGS=\"--arch tube\": the tube model)"
 	@echo "make clean  - remove build products (keeps .venv)"
 
 setup: build
@@ -64,6 +65,10 @@ test: build
 
 bench: build
 	$(VPY) -m benchmarks $(ARGS)
+
+# The shipped checkpoint the demo fine-tunes (docs/model.md); ARGS="--arch tube" the tube model.
+pretrain: build
+	$(VENV)/bin/softshape pretrain $(ARGS)
 
 clean:
 	rm -rf build install log .pytest_cache

@@ -43,3 +43,26 @@ def test_distance_sweep_cli_writes_numbers_and_figure(tmp_path, capsys):
     saved = json.loads((tmp_path / 'o' / 'distance_sweep.json').read_text())
     assert printed == saved and len(saved['rows']) == 5
     assert (tmp_path / 'o' / 'distance_sweep.png').is_file()
+
+
+def test_pretrain_tube_runs_its_two_phases_and_reuses_the_data(tmp_path, capsys):
+    """`softshape pretrain --arch tube`: the keypoint phase, then the full loss from it."""
+    from softshape_ros.cli import main as cli
+    from softshape_ros.model import load_checkpoint
+    args = ['pretrain', '--arch', 'tube', '--out', str(tmp_path / 'ck'), '--work',
+            str(tmp_path / 'work'), '--samples', '40', '--scenes', '4', '--keypoint-steps', '3',
+            '--max-steps', '2', '--batch-size', '8', '--eval-every', '1', '--threads', '1',
+            '--workers', '1', '--quiet']
+    assert cli(args) == 0
+    out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert out['keypoint_steps'] == 3 and out['steps'] == 2
+    assert out['settings']['arch'] == 'tube' and out['settings']['samples'] == 40
+    _, cfg = load_checkpoint(tmp_path / 'ck')
+    assert cfg['arch'] == 'tube' and cfg['training']['loss'] == 'tube'
+    assert cfg['training']['init_from'] == str(tmp_path / 'work' / 'tube_keypoints')
+    _, first = load_checkpoint(tmp_path / 'work' / 'tube_keypoints')
+    assert first['training']['loss'] == 'keypoints' and first['training']['steps'] == 3
+    data = next((tmp_path / 'work').glob('sim_40_4_0'))
+    stamp = (data / 'meta.json').stat().st_mtime_ns
+    assert cli(args) == 0                   # the simulated data is reused, not remade
+    assert (data / 'meta.json').stat().st_mtime_ns == stamp

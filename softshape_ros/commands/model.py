@@ -77,12 +77,18 @@ def _reproduce(args) -> int:
 
 
 def _pretrain(args) -> int:
-    from softshape_ros.experiments.pretrain import PretrainSettings, pretrain
-    s = PretrainSettings(samples=args.samples, scenes=args.scenes, seed=args.seed,
-                         max_steps=args.max_steps, batch_size=args.batch_size, lr=args.lr,
-                         eval_every=args.eval_every,
-                         patience=args.patience, threads=args.threads, workers=args.workers)
-    print(json.dumps(pretrain(s, args.out, args.work, progress=not args.quiet)))
+    from dataclasses import asdict
+    from softshape_ros.experiments.pretrain import TUBE, PretrainSettings, pretrain
+    d = asdict(PretrainSettings())
+    if args.arch == 'tube':
+        d.update(TUBE)
+    given = {k: getattr(args, k) for k in ('samples', 'scenes', 'seed', 'max_steps',
+                                           'batch_size', 'lr', 'eval_every', 'patience',
+                                           'threads', 'workers', 'keypoint_steps')}
+    d.update({k: v for k, v in given.items() if v is not None}, arch=args.arch)
+    s = PretrainSettings(**d)
+    out = args.out or f'models/{args.arch}_stereo_gray'
+    print(json.dumps(pretrain(s, out, args.work, progress=not args.quiet)))
     return 0
 
 
@@ -151,23 +157,23 @@ def register(sub) -> None:
     p.add_argument('--no-fig4c', action='store_true', help='skip the object-distance sweep')
     p.set_defaults(func=_reproduce)
 
-    from softshape_ros.experiments.pretrain import PretrainSettings
+    from softshape_ros.experiments.pretrain import TUBE, PretrainSettings
     d = PretrainSettings()
     p = sub.add_parser('pretrain', help='simulate a dataset and pre-train ours on it '
                                         '(the checkpoint the demo fine-tunes)')
-    p.add_argument('--out', default='models/ours_stereo_gray', help='checkpoint folder')
+    p.add_argument('--arch', choices=('ours', 'tube'), default='ours',
+                   help='ours (the demo\'s model) or tube (two phases, its own defaults: '
+                        + ', '.join(f'{k} {v}' for k, v in TUBE.items()) + ')')
+    p.add_argument('--out', default=None,
+                   help='checkpoint folder (default models/ARCH_stereo_gray)')
     p.add_argument('--work', default='/tmp/softshape_pretrain',
                    help='where the simulated dataset is kept (reused when unchanged)')
-    p.add_argument('--samples', type=int, default=d.samples)
-    p.add_argument('--scenes', type=int, default=d.scenes)
-    p.add_argument('--seed', type=int, default=d.seed)
-    p.add_argument('--max-steps', type=int, default=d.max_steps)
-    p.add_argument('--batch-size', type=int, default=d.batch_size)
-    p.add_argument('--lr', type=float, default=d.lr)
-    p.add_argument('--eval-every', type=int, default=d.eval_every)
-    p.add_argument('--patience', type=int, default=d.patience)
-    p.add_argument('--threads', type=int, default=d.threads)
-    p.add_argument('--workers', type=int, default=d.workers,
+    for flag, typ in (('samples', int), ('scenes', int), ('seed', int), ('max-steps', int),
+                      ('keypoint-steps', int), ('batch-size', int), ('lr', float),
+                      ('eval-every', int), ('patience', int), ('threads', int)):
+        p.add_argument(f'--{flag}', type=typ, default=None,
+                       help=f'default {getattr(d, flag.replace("-", "_"))} (ours)')
+    p.add_argument('--workers', type=int, default=None,
                    help='simulation processes (0: one per core)')
     p.add_argument('--quiet', action='store_true', help='no progress bars')
     p.set_defaults(func=_pretrain)

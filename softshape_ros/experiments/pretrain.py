@@ -1,18 +1,20 @@
 """
-Pre-training on simulation: simulate a dataset, train ``ours`` on it, write the checkpoint.
+Pre-training on simulation: simulate a dataset, train a network on it, write the checkpoint.
 
 The demo fine-tunes the shipped result (``models/ours_stereo_gray``) on the bags it records,
 so it starts from thousands of simulated interactions instead of its few hundred recorded
 ones. One command rebuilds it (``make pretrain`` = ``softshape pretrain``); the simulated
 dataset is kept in ``work`` and reused when its settings did not change. Same settings and
-thread count, same weights.
+thread count, same weights. ``softshape pretrain --arch tube`` builds the tube model the
+same way, in two phases: the keypoint and scene terms alone (fast, nothing drawn), then
+the full loss from there (:data:`TUBE`).
 """
 
 from __future__ import annotations
 
 import json
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 from softshape_ros.config import load_rig_config
@@ -34,6 +36,14 @@ class PretrainSettings:
     patience: int = 10
     threads: int = 2
     workers: int = 0
+    arch: str = 'ours'
+    keypoint_steps: int = 0         # tube: steps of the keypoint phase before the full loss
+
+
+#: The tube model's defaults: it needs many placements to learn to see the object
+#: (docs/model.md: 1000 samples over 100 placements overfit them), and data is cheap.
+TUBE = {'samples': 20000, 'scenes': 2000, 'keypoint_steps': 4000, 'max_steps': 600,
+        'eval_every': 250, 'patience': 100}
 
 
 def simulated_dataset(settings: PretrainSettings, work, progress: bool = True):
@@ -56,17 +66,24 @@ def simulated_dataset(settings: PretrainSettings, work, progress: bool = True):
 
 
 def pretrain(settings: PretrainSettings, out, work, progress: bool = True) -> dict:
-    """Simulate (or reuse) the data, train ``ours``, write the checkpoint to ``out``."""
+    """Simulate (or reuse) the data, train ``settings.arch``, write the checkpoint to ``out``."""
     ds = simulated_dataset(settings, work, progress)
-    cfg = TrainConfig(arch='ours', seed=settings.seed, split='scene',
+    cfg = TrainConfig(arch=settings.arch, seed=settings.seed, split='scene',
                       batch_size=settings.batch_size, lr=settings.lr,
                       max_steps=settings.max_steps, eval_every=settings.eval_every,
                       patience=settings.patience, threads=settings.threads)
     t0 = time.perf_counter()
+    steps = 0
+    if settings.keypoint_steps:
+        first = Path(work) / f'{settings.arch}_keypoints'
+        res = train(ds, replace(cfg, loss='keypoints', max_steps=settings.keypoint_steps),
+                    out=first, progress=progress, desc='pretrain keypoints')
+        cfg, steps = replace(cfg, init=str(first)), res.steps
     res = train(ds, cfg, out=out, progress=progress, desc='pretrain')
     secs = time.perf_counter() - t0
     return {'checkpoint': str(out), 'dataset': str(ds.path), 'samples': len(ds),
-            'steps': res.steps, 'val_rmse_255': 255 * res.best_val_mse ** 0.5,
+            'keypoint_steps': steps, 'steps': res.steps,
+            'val_rmse_255': 255 * res.best_val_mse ** 0.5,
             'copy_val_rmse_255': 255 * res.copy_val_mse ** 0.5, 'train_seconds': round(secs),
-            'train_samples_per_s': round(res.steps * settings.batch_size / secs, 1),
+            'train_samples_per_s': round((steps + res.steps) * settings.batch_size / secs, 1),
             'settings': asdict(settings)}
