@@ -216,6 +216,18 @@ def test_tube_network_shapes_and_seeded_start():
         y = net(x, torch.rand(2, 6))
         assert y.shape == x.shape and torch.isfinite(y).all()
         assert float(y.detach().min()) >= 0.0 and float(y.detach().max()) <= 1.0
+    # Inference caches the scene: one rest image repeated over a batch of actuations (a
+    # planner's candidates) is worked out once, and gives what the uncached model gives.
+    net = build_network('tube', 2, 1).eval()
+    with torch.no_grad():
+        for p in net.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+        x, p = torch.rand(1, 2, 64, 64).expand(5, -1, -1, -1), torch.rand(5, 6)
+        plain = net(x, p)
+        net.cache = True
+        assert torch.allclose(net(x, p), plain, atol=1e-5)
+        assert net._cached[1].code.stride(0) == 0          # one code, expanded
+        assert torch.allclose(net(x, p), plain, atol=1e-5)  # and from the cache
     torch.manual_seed(3)
     a = build_network('tube', 1, 1).state_dict()
     torch.manual_seed(3)

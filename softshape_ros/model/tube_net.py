@@ -310,7 +310,14 @@ class TubeNet(nn.Module):
             return self._scene_parts(image)
         c = self._cached
         if c is None or c[0].shape != image.shape or not torch.equal(c[0], image):
-            c = self._cached = (image.clone(), self._scene_parts(image))
+            b = image.shape[0]
+            if b > 1 and torch.equal(image[1:], image[:1].expand(b - 1, *image.shape[1:])):
+                # One scene, many actuations (a planner's candidates): its parts once.
+                one = self._scene_parts(image[:1])
+                parts = SceneParts(*(t.expand(b, *t.shape[1:]) for t in one))
+            else:
+                parts = self._scene_parts(image)
+            c = self._cached = (image.clone(), parts)
         return c[1]
 
     def _scene_parts(self, image: torch.Tensor) -> SceneParts:
