@@ -83,7 +83,8 @@ class SceneEncoder(nn.Module):
     Rest images -> a scene code (B x code) and what the code says of the object (B x 17).
 
     Strided convolutions (GroupNorm, ReLU) over the stacked views, less the training set's
-    mean rest image, and coordinate planes down to S/16; an MLP to the code. It never sees
+    mean rest image and over its per-pixel spread, down to S/16; an MLP (LayerNorm) of the
+    flattened map, which keeps where things are, to the code. It never sees
     the pressures: one code per scene (inference caches it). The second output reads the
     object's kind, position and size back out of the code
     (:data:`~softshape_ros.model.data.SCENE_FEATURES`, in units of the training placements'
