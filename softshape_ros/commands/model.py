@@ -77,16 +77,10 @@ def _reproduce(args) -> int:
 
 
 def _pretrain(args) -> int:
-    from dataclasses import asdict
-    from softshape_ros.experiments.pretrain import TUBE, PretrainSettings, pretrain
-    d = asdict(PretrainSettings())
-    if args.arch == 'tube':
-        d.update(TUBE)
-    given = {k: getattr(args, k) for k in ('samples', 'scenes', 'seed', 'max_steps',
-                                           'batch_size', 'lr', 'eval_every', 'patience',
-                                           'threads', 'workers', 'keypoint_steps')}
-    d.update({k: v for k, v in given.items() if v is not None}, arch=args.arch)
-    s = PretrainSettings(**d)
+    from softshape_ros.experiments.pretrain import PretrainSettings, pretrain
+    s = PretrainSettings.for_arch(args.arch, **{k: getattr(args, k) for k in (
+        'samples', 'scenes', 'seed', 'max_steps', 'batch_size', 'lr', 'eval_every',
+        'patience', 'threads', 'workers', 'keypoint_steps')})
     out = args.out or f'models/{args.arch}_stereo_gray'
     print(json.dumps(pretrain(s, out, args.work, progress=not args.quiet)))
     return 0

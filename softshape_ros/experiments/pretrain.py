@@ -39,6 +39,15 @@ class PretrainSettings:
     arch: str = 'ours'
     keypoint_steps: int = 0         # tube: steps of the keypoint phase before the full loss
 
+    @classmethod
+    def for_arch(cls, arch: str, **given) -> 'PretrainSettings':
+        """Return ``arch``'s defaults (:data:`TUBE` for tube), overridden by ``given`` not None."""
+        d = asdict(cls())
+        if arch == 'tube':
+            d.update(TUBE)
+        d.update({k: v for k, v in given.items() if v is not None}, arch=arch)
+        return cls(**d)
+
 
 #: The tube model's defaults: it needs many placements to learn to see the object
 #: (docs/model.md: 1000 samples over 100 placements overfit them), and data is cheap.
