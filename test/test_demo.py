@@ -52,6 +52,10 @@ def test_tiny_demo_end_to_end_and_reuse(tmp_path):
     from softshape_ros.model.checkpoint import read_config
     trained = read_config(root / 'model')['training']
     assert trained['init_from'] == (s.pretrained or None)     # the shipped checkpoint, if any
+    # ... of its own architecture (the shipped tube model; ours when trained from scratch)
+    want = read_config(s.pretrained)['arch'] if s.pretrained else 'ours'
+    assert read_config(root / 'model')['arch'] == want
+    assert f'## Training (`{want}`' in text
     live = json.loads((root / '.live.done.json').read_text())['result']
     assert live['samples'] == s.live_scenes * s.live_commands
     assert np.isfinite(live['rmse_255']) and 0 <= live['rmse_255'] < 255

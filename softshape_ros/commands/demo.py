@@ -21,10 +21,12 @@ def register(sub) -> None:
     p.add_argument('--max-steps', type=int, default=d.max_steps,
                    help='training steps at most (from scratch)')
     p.add_argument('--pretrained', default=d.pretrained,
-                   help="checkpoint to fine-tune ('' = train from scratch; default: the "
-                        "shipped models/ours_stereo_gray, rebuilt by make pretrain)")
+                   help="checkpoint to fine-tune ('' = train ours from scratch; default: "
+                        "the shipped models/tube_stereo_gray, rebuilt by make pretrain "
+                        "ARGS='--arch tube')")
     p.add_argument('--finetune-lr', type=float, default=d.finetune_lr,
-                   help='Adam learning rate when fine-tuning the pre-trained checkpoint')
+                   help='Adam learning rate when fine-tuning the pre-trained checkpoint '
+                        '(default: 3e-4 for tube, 1e-3 for ours and paper)')
     p.add_argument('--finetune-steps', type=int, default=d.finetune_steps,
                    help='fine-tuning steps (batch 64) when starting from the checkpoint')
     p.add_argument('--threads', type=int, default=d.threads, help='torch threads')

@@ -71,7 +71,8 @@ def write_report(root: Path, settings, results: dict, wall_s: float | None = Non
     lines = [
         '# softshape_ros demo report', '',
         'The whole pipeline on the simulated rig: mock_hardware (Cosserat simulator + renderer),',
-        'collector and recorder as separate ROS 2 processes -> rosbag2 bag -> dataset -> `ours`',
+        'collector and recorder as separate ROS 2 processes -> rosbag2 bag -> dataset -> '
+        f'`{tr.get("arch", "ours")}`',
         'model -> evaluation -> the inference node live against the mock rig.', '',
         f'Settings: `{json.dumps({k: getattr(settings, k) for k in vars(settings)})}`', '',
         '## Stages', '',
@@ -92,7 +93,7 @@ def write_report(root: Path, settings, results: dict, wall_s: float | None = Non
         '', '## Dataset', '',
         f'{ds.get("count")} samples, views {ds.get("views")}; dropped: '
         f'`{json.dumps(ds.get("dropped"))}`.', '',
-        '## Training (`ours`, random 80/20 split as the paper)', '',
+        f'## Training (`{tr.get("arch", "ours")}`, random 80/20 split as the paper)', '',
         f'{start}; {tr.get("steps")} steps; validation RMSE {_fmt(tr.get("val_rmse_255"))} '
         f'(0-255 scale) vs {_fmt(tr.get("copy_val_rmse_255"))} for copying the initial image.',
         '', '## Evaluation on the validation rows', '']
