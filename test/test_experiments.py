@@ -66,3 +66,10 @@ def test_pretrain_tube_runs_its_two_phases_and_reuses_the_data(tmp_path, capsys)
     stamp = (data / 'meta.json').stat().st_mtime_ns
     assert cli(args) == 0                   # the simulated data is reused, not remade
     assert (data / 'meta.json').stat().st_mtime_ns == stamp
+    meta = json.loads((data / 'meta.json').read_text())
+    assert meta['simulator']['sparse_share'] > 0
+    # Other plan settings: the data is simulated again, not taken from the cache.
+    assert cli(args + ['--sparse-share', '0', '--max-steps', '1', '--keypoint-steps', '1']) == 0
+    meta = json.loads((data / 'meta.json').read_text())
+    assert (data / 'meta.json').stat().st_mtime_ns != stamp
+    assert meta['simulator']['sparse_share'] == 0
