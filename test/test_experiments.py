@@ -62,7 +62,16 @@ def test_pretrain_tube_runs_its_two_phases_and_reuses_the_data(tmp_path, capsys)
     assert cfg['training']['init_from'] == str(tmp_path / 'work' / 'tube_keypoints')
     _, first = load_checkpoint(tmp_path / 'work' / 'tube_keypoints')
     assert first['training']['loss'] == 'keypoints' and first['training']['steps'] == 3
+    assert first['training']['best_val_mse'] is None          # the keypoint phase draws nothing
+    assert out['val_rmse_255'] > 0
     data = next((tmp_path / 'work').glob('sim_40_4_0'))
     stamp = (data / 'meta.json').stat().st_mtime_ns
     assert cli(args) == 0                   # the simulated data is reused, not remade
     assert (data / 'meta.json').stat().st_mtime_ns == stamp
+    meta = json.loads((data / 'meta.json').read_text())
+    assert meta['simulator']['sparse_share'] > 0
+    # Other plan settings: the data is simulated again, not taken from the cache.
+    assert cli(args + ['--sparse-share', '0', '--max-steps', '1', '--keypoint-steps', '1']) == 0
+    meta = json.loads((data / 'meta.json').read_text())
+    assert (data / 'meta.json').stat().st_mtime_ns != stamp
+    assert meta['simulator']['sparse_share'] == 0

@@ -184,6 +184,32 @@ def test_the_scene_encoder_learns_to_see_the_placement(simulated):
     assert err < 0.5 * spread, (err, spread)
 
 
+def test_the_keypoint_phase_validates_without_drawing(simulated, monkeypatch):
+    """A keypoint-only objective: validation draws no image, and reports no image error."""
+    from softshape_ros.model.tube_net import TubeNet
+    ds = load_dataset(simulated.path)
+    forward, drawn = TubeNet.forward, []
+
+    def spy(self, image, pressure, truth=None, parts=False):
+        if parts != 'keypoints':
+            drawn.append(len(image))
+        return forward(self, image, pressure, truth, parts)
+
+    monkeypatch.setattr(TubeNet, 'forward', spy)
+    cfg = TrainConfig(arch='tube', loss='keypoints', batch_size=16, max_steps=20,
+                      eval_every=10, patience=100, seed=0, threads=1, split='scene')
+    res = train(ds, cfg, progress=False)
+    assert drawn == []
+    assert [h['step'] for h in res.history] == [10, 20]
+    assert all(h['val_mse'] is None and h['val_loss'] > 0 for h in res.history)
+    assert res.best_val_mse is None and res.config['training']['best_val_mse'] is None
+    assert res.copy_val_mse > 0
+    # The full objective still draws and reports its image error.
+    res = train(ds, TrainConfig(arch='tube', batch_size=16, max_steps=2, eval_every=2,
+                                seed=0, threads=1, split='scene'), progress=False)
+    assert drawn and 0 < res.best_val_mse == res.history[-1]['val_mse']
+
+
 def test_short_tube_training_beats_copy_on_touching_samples(simulated, tmp_path):
     from softshape_ros.model.evaluate import predict_rows
     from softshape_ros.model.metrics import evaluate_arrays

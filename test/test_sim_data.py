@@ -14,8 +14,8 @@ from softshape_ros.model.reproduce import select_views
 from softshape_ros.scene import Scene
 from softshape_ros.sim import SimRig
 from softshape_ros.sim.generate import (
-    CONTACT_GAP_M, MAX_GAP_M, TOWARD_WINDOW_RAD, ContactSample, bend_directions, generate,
-    make_plan, measure_contact, toward_pressures)
+    CONTACT_GAP_M, MAX_GAP_M, SPARSE_SHARE, TOWARD_WINDOW_RAD, ContactSample, bend_directions,
+    generate, make_plan, measure_contact, sparse_pressures, toward_pressures)
 
 CFG = load_rig_config()
 VIEWS = ['main', 'side']
@@ -42,6 +42,7 @@ def test_default_distribution_touches_in_most_samples(small):
     assert 0.5 <= share < 1.0, share                      # free samples still present
     assert ds.meta['touching_share'] == pytest.approx(share) == summary['touching_share']
     assert ds.meta['contact']['recorded'] is True
+    assert ds.meta['simulator']['sparse_share'] == pytest.approx(plan.sparse.mean())
     kinds = [plan.scenes[i].object for i in plan.sample_scene]
     for kind in ('cylinder', 'ring', 'prism'):
         touched = c.touching[np.array(kinds) == kind]
@@ -128,6 +129,43 @@ def test_toward_actuations_stay_in_limits_and_point_at_the_object():
     # Scenes without an object beside the robot get uniform actuations only.
     none = make_plan(CFG, 20, [Scene(id=0)], seed=0)
     assert not none.toward.any()
+
+
+def test_a_share_of_the_plan_is_sparse_and_the_rest_is_unchanged():
+    """Sparse rows: one chamber, or one per segment; the other rows as with no sparse share."""
+    lim = np.asarray(CFG.max_pressures_pa)
+    segment = np.array([c.segment for c in CFG.chambers])
+    plan = make_plan(CFG, 2000, 20, seed=3)
+    share = float(plan.sparse.mean())
+    assert abs(share - SPARSE_SHARE) < 0.03, share
+    on = plan.pressures > 0
+    count = on.sum(1)
+    assert set(count[plan.sparse]) == {1, 2} and (count[~plan.sparse] == 6).all()
+    pairs = on[plan.sparse & (count == 2)]
+    assert len(pairs) > 100 and all(sorted(segment[r]) == [0, 1] for r in pairs)
+    # The aligned pairs (the sweep's kind of actuation) are among them.
+    assert any((segment[r] == [0, 1]).all() and np.nonzero(r)[0][1] - np.nonzero(r)[0][0] == 3
+               for r in pairs)
+    assert (plan.pressures >= 0).all() and (plan.pressures <= lim).all()
+    # Sparse rows keep their toward flag: those bend at the object too.
+    assert (plan.sparse & plan.toward).sum() > 0.5 * plan.sparse.sum()
+    none = make_plan(CFG, 2000, 20, seed=3, sparse_share=0.0)
+    assert not none.sparse.any()
+    keep = ~plan.sparse
+    assert np.array_equal(none.pressures[keep], plan.pressures[keep])
+    assert np.array_equal(none.toward, plan.toward)
+    with pytest.raises(ValueError, match='sparse-share'):
+        make_plan(CFG, 10, 2, seed=0, sparse_share=-0.1)
+
+
+def test_sparse_actuations_toward_the_object_point_at_it():
+    rng = np.random.default_rng(5)
+    for azimuth in (0.0, 1.0, math.pi / 2, -2.5):      # between and on the chambers' ways
+        p = sparse_pressures(rng, 300, CFG, azimuth)
+        assert set((p > 0).sum(1)) <= {1, 2}
+        b = (p / np.asarray(CFG.max_pressures_pa)) @ bend_directions(CFG)
+        ang = np.abs(np.angle(np.exp(1j * (np.arctan2(b[:, 1], b[:, 0]) - azimuth))))
+        assert ang.max() <= TOWARD_WINDOW_RAD + 1e-9
 
 
 def test_chunks_split_scenes_and_keep_the_bytes_for_any_worker_count(tmp_path):

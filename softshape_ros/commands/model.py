@@ -23,7 +23,8 @@ def _train(args) -> int:
                       min_steps=args.min_steps)
     res = train(ds, cfg, out=args.out, indices=rows, progress=not args.quiet)
     summary = {'checkpoint': args.out, 'steps': res.steps,
-               'val_rmse_255': 255 * res.best_val_mse ** 0.5,
+               'val_rmse_255': (None if res.best_val_mse is None
+                                else 255 * res.best_val_mse ** 0.5),
                'copy_val_rmse_255': 255 * res.copy_val_mse ** 0.5}
     if res.config['training']['world_size'] == 1 or _rank() == 0:
         print(json.dumps(summary))
@@ -80,7 +81,7 @@ def _pretrain(args) -> int:
     from softshape_ros.experiments.pretrain import PretrainSettings, pretrain
     s = PretrainSettings.for_arch(args.arch, **{k: getattr(args, k) for k in (
         'samples', 'scenes', 'seed', 'max_steps', 'batch_size', 'lr', 'eval_every',
-        'patience', 'threads', 'workers', 'keypoint_steps')})
+        'patience', 'threads', 'workers', 'keypoint_steps', 'toward_share', 'sparse_share')})
     out = args.out or f'models/{args.arch}_stereo_gray'
     print(json.dumps(pretrain(s, out, args.work, progress=not args.quiet)))
     return 0
@@ -164,7 +165,8 @@ def register(sub) -> None:
                    help='where the simulated dataset is kept (reused when unchanged)')
     for flag, typ in (('samples', int), ('scenes', int), ('seed', int), ('max-steps', int),
                       ('keypoint-steps', int), ('batch-size', int), ('lr', float),
-                      ('eval-every', int), ('patience', int), ('threads', int)):
+                      ('eval-every', int), ('patience', int), ('threads', int),
+                      ('toward-share', float), ('sparse-share', float)):
         p.add_argument(f'--{flag}', type=typ, default=None,
                        help=f'default {getattr(d, flag.replace("-", "_"))} (ours)')
     p.add_argument('--workers', type=int, default=None,

@@ -65,7 +65,8 @@ def _simulate(args) -> int:
     if args.views == 'stereo' and len(views) < 2:
         raise ValueError('--views stereo needs two cameras in the config')
     scenes = load_session(args.session) if args.session else args.scenes
-    plan = make_plan(cfg, args.samples, scenes, args.seed, toward_share=args.toward_share)
+    plan = make_plan(cfg, args.samples, scenes, args.seed, toward_share=args.toward_share,
+                     sparse_share=args.sparse_share)
     ds, summary = generate(cfg, plan, args.out, views, size=args.size or cfg.dataset.image_size,
                            gray=not args.rgb and cfg.dataset.gray, workers=args.workers,
                            supersample=args.supersample,
@@ -77,7 +78,7 @@ def _simulate(args) -> int:
 
 
 def register(sub) -> None:
-    from softshape_ros.sim.generate import TOWARD_SHARE
+    from softshape_ros.sim.generate import SPARSE_SHARE, TOWARD_SHARE
     p = sub.add_parser('sim-solve', help='solve one simulator equilibrium and print JSON')
     p.add_argument('--config', default=None, help='rig YAML (default: the package rig.yaml)')
     act = p.add_mutually_exclusive_group()
@@ -117,6 +118,9 @@ def register(sub) -> None:
     p.add_argument('--toward-share', type=float, default=TOWARD_SHARE,
                    help='share of actuations drawn to bend towards the object (0: all '
                         f'uniform, as the recorded rig; default {TOWARD_SHARE})')
+    p.add_argument('--sparse-share', type=float, default=SPARSE_SHARE,
+                   help='share of sparse actuations: one chamber on, or one per segment, the '
+                        f'rest at zero (0: none; default {SPARSE_SHARE})')
     p.add_argument('--workers', type=int, default=0,
                    help='processes (default 0: all cores; 1: no worker processes)')
     p.add_argument('--size', type=int, default=0, help='image size (default: config)')

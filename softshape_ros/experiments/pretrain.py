@@ -19,6 +19,7 @@ from pathlib import Path
 
 from softshape_ros.config import load_rig_config
 from softshape_ros.model.train import TrainConfig, train
+from softshape_ros.sim.generate import SPARSE_SHARE, TOWARD_SHARE
 
 
 @dataclass
@@ -38,6 +39,8 @@ class PretrainSettings:
     workers: int = 0
     arch: str = 'ours'
     keypoint_steps: int = 0         # tube: steps of the keypoint phase before the full loss
+    toward_share: float = TOWARD_SHARE  # the simulated actuations (sim.generate.make_plan)
+    sparse_share: float = SPARSE_SHARE
 
     @classmethod
     def for_arch(cls, arch: str, **given) -> 'PretrainSettings':
@@ -56,18 +59,24 @@ TUBE = {'samples': 20000, 'scenes': 2000, 'keypoint_steps': 4000, 'max_steps': 6
 
 
 def simulated_dataset(settings: PretrainSettings, work, progress: bool = True):
-    """Return the simulated dataset of ``settings`` in ``work`` (made once, then reused)."""
+    """
+    Return the simulated dataset of ``settings`` in ``work`` (made once, then reused).
+
+    Reused only if made with the same data settings, the plan's shares included
+    (``pretrain_key.json``); otherwise it is simulated again in its place.
+    """
     from softshape_ros.data import load_dataset
     from softshape_ros.sim.generate import generate, make_plan
     cfg = load_rig_config()
     key = {k: v for k, v in asdict(settings).items()
-           if k in ('samples', 'scenes', 'views', 'seed')}
+           if k in ('samples', 'scenes', 'views', 'seed', 'toward_share', 'sparse_share')}
     key['views'] = list(key['views'])
     path = Path(work) / f'sim_{settings.samples}_{settings.scenes}_{settings.seed}'
     marker = path / 'pretrain_key.json'
     if marker.is_file() and json.loads(marker.read_text()) == key:
         return load_dataset(path)
-    plan = make_plan(cfg, settings.samples, settings.scenes, settings.seed)
+    plan = make_plan(cfg, settings.samples, settings.scenes, settings.seed,
+                     toward_share=settings.toward_share, sparse_share=settings.sparse_share)
     generate(cfg, plan, path, views=list(settings.views), workers=settings.workers,
              overwrite=True, progress=progress, source='softshape pretrain')
     marker.write_text(json.dumps(key))
@@ -92,7 +101,8 @@ def pretrain(settings: PretrainSettings, out, work, progress: bool = True) -> di
     secs = time.perf_counter() - t0
     return {'checkpoint': str(out), 'dataset': str(ds.path), 'samples': len(ds),
             'keypoint_steps': steps, 'steps': res.steps,
-            'val_rmse_255': 255 * res.best_val_mse ** 0.5,
+            'val_rmse_255': (None if res.best_val_mse is None
+                             else 255 * res.best_val_mse ** 0.5),
             'copy_val_rmse_255': 255 * res.copy_val_mse ** 0.5, 'train_seconds': round(secs),
             'train_samples_per_s': round((steps + res.steps) * settings.batch_size / secs, 1),
             'settings': asdict(settings)}

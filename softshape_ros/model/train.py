@@ -78,7 +78,7 @@ class TrainResult:
     model: torch.nn.Module
     config: dict
     history: list
-    best_val_mse: float
+    best_val_mse: float | None      # None: a keypoint-only objective (nothing drawn)
     copy_val_mse: float
     steps: int
 
@@ -255,17 +255,27 @@ def _take(extra, idx):
     return tuple(None if t is None else t[idx] for t in extra)
 
 
+def _draws(objective) -> bool:
+    """Whether ``objective`` draws images (a keypoint-only one does not: no image error)."""
+    return not getattr(objective, 'keypoints_only', False)
+
+
 def _validate(net, val, extra, objective, chunk=256):
-    """Return (sum of squared errors, sum of per-chunk losses x rows) over the val slice."""
+    """
+    Return (sum of squared errors, sum of per-chunk losses x rows) over the val slice.
+
+    A keypoint-only objective draws nothing, and nothing is drawn for it here either: the
+    squared error is then 0 (``_fit`` reports no ``val_mse``); drawing every validation row
+    cost more than the keypoint steps between two validations.
+    """
     x8, t8, p = val
     sse = loss = 0.0
     with torch.no_grad():
         for i in range(0, len(x8), chunk):
             x, t = to_float(x8[i:i + chunk]), to_float(t8[i:i + chunk])
             lo, y = objective(net, x, p[i:i + chunk], t, *_take(extra, slice(i, i + chunk)))
-            if y is None:                   # a keypoint-only objective draws nothing
-                y = net(x, p[i:i + chunk])
-            sse += float(((y - t) ** 2).sum())
+            if y is not None:
+                sse += float(((y - t) ** 2).sum())
             loss += float(lo) * len(x)
     return sse, loss
 
@@ -287,12 +297,15 @@ def _fit(net, rows, objective, config, lr, rank, world, progress, desc) -> dict:
     copy_sse, n_pix, n_val = _all_sum(world, float(((to_float(xv) - to_float(tv)) ** 2).sum()),
                                       tv.numel(), len(tv))
     copy_mse = copy_sse / n_pix
+    draws = _draws(objective)       # else no image error (val_mse None)
     best, best_mse, best_state, bad, step, history = math.inf, math.inf, None, 0, 0, []
+    if not draws:
+        best_mse = None
     if config.init is not None:     # fine-tuning never ends worse than where it started
         net.eval()
         sse, vloss = _all_sum(world, *(_validate(net, rows.val, rows.val_shape, objective)
                                        if len(xv) else (0.0, 0.0)))
-        best, best_mse = vloss / n_val, sse / n_pix
+        best, best_mse = vloss / n_val, sse / n_pix if draws else None
         best_state = copy.deepcopy(net.state_dict())
         history.append({'step': 0, 'train_loss': None, 'val_loss': best, 'val_mse': best_mse})
     bar = tqdm(total=config.max_steps, desc=desc, disable=not progress, leave=False,
@@ -316,7 +329,7 @@ def _fit(net, rows, objective, config, lr, rank, world, progress, desc) -> dict:
             net.eval()
             sse, vloss = _all_sum(world, *(_validate(net, rows.val, rows.val_shape, objective)
                                            if len(xv) else (0.0, 0.0)))
-            val, vloss = sse / n_pix, vloss / n_val
+            val, vloss = sse / n_pix if draws else None, vloss / n_val
             (tl,) = _all_sum(world, run_loss / run_n)
             history.append({'step': step, 'train_loss': tl / world, 'val_loss': vloss,
                             'val_mse': val})
@@ -327,7 +340,7 @@ def _fit(net, rows, objective, config, lr, rank, world, progress, desc) -> dict:
             else:
                 bad += 1
             bar.set_postfix(train=f'{tl / world:.5f}', val=f'{vloss:.5f}',
-                            mse=f'{val:.5f}', copy=f'{copy_mse:.5f}')
+                            mse='-' if val is None else f'{val:.5f}', copy=f'{copy_mse:.5f}')
             if step >= config.max_steps or (bad >= config.patience
                                             and step >= config.min_steps):
                 bar.close()
