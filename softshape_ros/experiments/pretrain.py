@@ -1,7 +1,7 @@
 """
 Pre-training on simulation: simulate a dataset, train a network on it, write the checkpoint.
 
-The demo fine-tunes the shipped result (``models/ours_stereo_gray``) on the bags it records,
+The demo fine-tunes a shipped result (``models/tube_stereo_gray``) on the bags it records,
 so it starts from thousands of simulated interactions instead of its few hundred recorded
 ones. One command rebuilds it (``make pretrain`` = ``softshape pretrain``); the simulated
 dataset is kept in ``work`` and reused when its settings did not change. Same settings and
