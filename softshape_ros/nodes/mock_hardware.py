@@ -94,10 +94,13 @@ class MockHardware(Node):
                 CameraInfo, t.camera('camera_info', cam), qos)
             self.pub_time[cam] = self.create_publisher(
                 TimeReference, t.camera('capture_time', cam), RELIABLE_QOS)
+        # The trigger subscription first: rclpy serves the subscriptions that are ready in one
+        # wait in creation order, so a trigger waiting beside a newer command samples the
+        # pressures before that command moves the regulators (as the trigger came first).
+        self.create_subscription(Header, t.trigger, self._on_trigger, RELIABLE_QOS)
         self.create_subscription(Float64MultiArray, t.pressure_command, self._on_command,
                                  RELIABLE_QOS)
         self.create_subscription(String, t.scene, self._on_scene, LATCHED_QOS)
-        self.create_subscription(Header, t.trigger, self._on_trigger, RELIABLE_QOS)
 
         self.rejected = 0
         self.clamped = 0
