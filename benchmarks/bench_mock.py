@@ -6,10 +6,12 @@ mock_hardware runs in its own process at the configured 640x480; this process su
 second per camera over a window with free run at 30 Hz; trigger-to-image latency (trigger
 stamp to the second camera's image received here; the node's own trigger-to-images-made
 figure from its /diagnostics beside it), each trigger after a new random command has
-settled (so each is a fresh solve), with free run on and off; the demo's record stage
+settled (a new shape each; a fresh solve at the trigger unless the node solved the command
+on arrival), with free run on and off; the demo's record stage
 (mock_hardware + recorder + collector at 2 Hz, ``pipeline.record``) wall time against
 triggers / 2 Hz. With MOCK_BENCH_BASELINE=<checkout> the same runs on that checkout's code
-(its nodes run from its sources), side by side in one run. Transport: whatever the tree
+(its nodes run from its sources), side by side in one run. MOCK_BENCH_RECORD=0 skips the
+record stages (the streams only). Transport: whatever the tree
 configures (Fast DDS defaults unless a profile is set). Sizes: MOCK_BENCH_WINDOW_S (10),
 MOCK_BENCH_TRIGGERS (40), MOCK_BENCH_SCENES x MOCK_BENCH_ACTUATIONS (3 x 20).
 """
@@ -187,9 +189,13 @@ def run() -> dict:
            or os.environ.get('FASTDDS_DEFAULT_PROFILES_FILE') or 'Fast DDS defaults'}
     out['free_run_30hz'] = _isolated('stream', None, 30.0, window, triggers)
     out['triggers_only'] = _isolated('stream', None, 0.0, window, triggers)
-    out['record_stage'] = record_stage(None, scenes, actuations)
+    record = os.environ.get('MOCK_BENCH_RECORD', '1') != '0'
+    if record:
+        out['record_stage'] = record_stage(None, scenes, actuations)
     if base:
         out['baseline_triggers'] = _isolated('stream', base, 30.0, window, triggers)
-        out['baseline_record_stage'] = record_stage(base, scenes, actuations)
+        out['baseline_triggers_only'] = _isolated('stream', base, 0.0, window, triggers)
+        if record:
+            out['baseline_record_stage'] = record_stage(base, scenes, actuations)
     out['load_average_after'] = os.getloadavg()
     return out

@@ -74,12 +74,18 @@ class FirstOrderRegulator:
     Proportional pressure regulators as first-order lags (time constant ``tau_s``).
 
     Stands in for six Camozzi K8P regulators in the virtual Due and the mock hardware.
+    ``resolution_pa`` > 0: a chamber within that of its setpoint holds the setpoint exactly
+    (settled, as a regulator stops correcting inside its resolution); 0 is the pure lag,
+    which reaches the setpoint only in the limit.
     """
 
-    def __init__(self, tau_s: float = 0.05, n: int = N_CHAMBERS):
+    def __init__(self, tau_s: float = 0.05, n: int = N_CHAMBERS, resolution_pa: float = 0.0):
         if tau_s < 0:
             raise ValueError(f'tau_s must be >= 0, got {tau_s}')
+        if not (resolution_pa >= 0 and math.isfinite(resolution_pa)):
+            raise ValueError(f'resolution_pa must be finite and >= 0, got {resolution_pa}')
         self.tau_s = float(tau_s)
+        self.resolution_pa = float(resolution_pa)
         self.setpoint = np.zeros(n)
         self.pressure = np.zeros(n)
 
@@ -88,4 +94,7 @@ class FirstOrderRegulator:
         if dt > 0:
             a = 1.0 if self.tau_s == 0 else 1.0 - math.exp(-dt / self.tau_s)
             self.pressure += a * (self.setpoint - self.pressure)
+            if self.resolution_pa > 0:
+                near = np.abs(self.setpoint - self.pressure) <= self.resolution_pa
+                self.pressure[near] = self.setpoint[near]
         return self.pressure.copy()

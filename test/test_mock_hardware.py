@@ -146,6 +146,33 @@ def test_solver_error_gives_no_images_and_diagnostics_error(ros):
     assert probe.images == [] and mock.frames == 0
 
 
+def test_a_trigger_after_the_command_settled_renders_the_shape_solved_on_arrival(ros):
+    """Counted in the node's diagnostics: the command is solved once, the trigger reuses it."""
+    import time
+
+    from softshape_ros.nodes.common import image_to_numpy, ns_to_stamp
+    from softshape_ros.sim import SimRig
+    probe = Probe(ros)
+    mock = _mock(ros)
+    ros.wait_for(lambda: probe.trig.get_subscription_count(), what='discovery')
+    command = [2.0e4, 0.0, 0.0, 0.0, 3.0e4, 0.0]
+    probe.send(command)
+    ros.wait_for(lambda: probe.last() is not None and probe.last().tolist() == command,
+                 what='settled exactly on the command (within the regulator resolution)')
+    ros.wait_for(lambda: mock.cameras.command_solves == 1, what='the commanded shape solved')
+    probe.trig.publish(probe.H(stamp=ns_to_stamp(time.time_ns())))
+    ros.wait_for(lambda: probe.diags.get('mock_hardware: cameras', (0, '', {}))[2]
+                 .get('frames') == '1', what='diagnostics after the trigger', timeout=10)
+    values = probe.diags['mock_hardware: cameras'][2]
+    # The warm-up (rest shape) is the only solve for a frame; the trigger rendered the shape
+    # solved when the command came.
+    assert (values['solves'], values['command_solves'], values['reused_shapes']) == ('1', '1',
+                                                                                     '1')
+    rig = SimRig(probe.cfg)
+    want = rig.snap(command)['main']
+    assert np.array_equal(image_to_numpy(probe.images[0]), want)
+
+
 def test_free_run_streams_both_cameras_at_the_rate_and_still_answers_triggers(ros, tmp_path):
     """
     Free-run rate by message count over a window of capture stamps (not a timed assertion).

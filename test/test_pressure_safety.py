@@ -50,6 +50,17 @@ def test_regulator_is_first_order():
     assert p[0] == pytest.approx(1000.0, rel=1e-4)
 
 
+def test_regulator_with_a_resolution_holds_the_setpoint_exactly_once_within_it():
+    r = FirstOrderRegulator(tau_s=0.1, n=2, resolution_pa=10.0)
+    r.setpoint[:] = [1000.0, 0.0]
+    p = r.step(0.1 * math.log(1000.0 / 11.0))              # 11 Pa short: still the lag
+    assert 1000.0 - p[0] == pytest.approx(11.0) and p[1] == 0.0
+    p = r.step(0.1 * math.log(11.0 / 9.0))                 # 9 Pa short: settled
+    assert p[0] == 1000.0 and (r.step(1.0) == [1000.0, 0.0]).all()
+    with pytest.raises(ValueError, match='resolution_pa'):
+        FirstOrderRegulator(resolution_pa=-1.0)
+
+
 def test_measured_pressures_are_put_in_config_order_or_refused():
     from softshape_ros.pressure import measured_in_order
     names = ['a', 'b', 'c', 'd', 'e', 'f']

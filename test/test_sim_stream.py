@@ -155,3 +155,62 @@ def test_worker_thread_streams_and_stops():
     finally:
         cams.stop()
     assert not cams._thread.is_alive() and all(f.kind == 'free' for f in frames)
+
+
+def test_a_command_is_solved_on_arrival_and_a_trigger_before_it_settled_gets_its_own_shape():
+    clock = FakeClock()
+    rig = small_rig()
+    calls = []
+    solve = rig.solve
+    rig.solve = lambda p: calls.append(np.array(p)) or solve(p)
+    cams, out, _, _ = _cameras(rig, clock, hz=0.0)
+    target = np.array([3e4, 0, 0, 0, 2e4, 0.0])
+    midway = 0.5 * target
+    # Queued in arrival order: the command, a trigger while the regulators are on their way,
+    # a trigger once they settled on it, then a command superseded before it was served.
+    cams.command(target)
+    cams.trigger(1, midway, 1)
+    cams.trigger(2, target, 2)
+    cams.command(np.zeros(6))
+    cams.command(target)                                   # replaces the one before it
+    assert [j[0] for j in cams.jobs] == ['command', 'trigger', 'trigger', 'command']
+    assert cams.step(0.0) == 'command' and cams.command_solves == 1 and cams.solves == 0
+    assert cams.step(0.0) == 'trigger'                     # not the commanded shape: solved
+    assert cams.solves == 1 and out[-1].solved and np.array_equal(out[-1].pressures_pa, midway)
+    assert np.array_equal(calls[-1], midway)
+    assert cams.step(0.0) == 'trigger'                     # settled: rendered, not solved
+    assert (cams.solves, cams.reused, len(calls)) == (1, 1, 2) and not out[-1].solved
+    assert np.array_equal(out[-1].pressures_pa, target)
+    # The frame it rendered is the commanded shape's: the same images as a fresh rig's.
+    fresh = small_rig()
+    assert np.array_equal(out[-1].images['main'], fresh.render(fresh.solve(target))['main'])
+    assert cams.step(0.0) == 'command' and cams.command_solves == 1   # that shape is made
+    assert cams.step(0.0) is None and cams.idle()
+    # A scene change solves the commanded shape in the new scene before the next trigger.
+    cams.set_scene(Scene(id=3, object='sphere', position_m=(0.03, 0.0, 0.02),
+                         dims={'radius_m': 0.006}))
+    assert cams.step(0.0) == 'scene' and cams.command_solves == 2 and len(calls) == 3
+    cams.trigger(3, target, 3)
+    assert cams.step(0.0) == 'trigger' and (cams.solves, len(calls)) == (1, 3)
+    assert not out[-1].solved
+    # Commands never fill the queue: triggers and scenes only count.
+    small = _cameras(small_rig(), clock, hz=0.0, max_pending=1)[0]
+    small.command(target)
+    assert small.trigger(1, target, 1) and not small.trigger(2, target, 2)
+    small.command(np.zeros(6))
+    assert small.dropped == 1 and len(small.jobs) == 3
+
+
+def test_a_failed_commanded_solve_is_logged_and_the_frame_solves_and_reports_it():
+    clock = FakeClock()
+    rig = small_rig()
+
+    def fail(p):
+        raise SolverError('did not converge (injected)')
+    rig.solve = fail
+    cams, out, _, logs = _cameras(rig, clock, hz=0.0)
+    cams.command(np.full(6, 1e4))
+    cams.trigger(1, np.full(6, 1e4), 1)
+    assert cams.step(0.0) == 'command' and cams.solver_errors == 0
+    assert any(level == 'warning' and 'not solved' in msg for level, msg in logs)
+    assert cams.step(0.0) == 'trigger' and out == [] and cams.solver_errors == 1

@@ -6,11 +6,15 @@ first-order regulators follow them and the measured pressures go out at ~100 Hz.
 trigger the pressures are sampled (and published, stamped with that instant), the
 simulator is solved at them in the current scene (from the latched /rig/scene) and both
 camera images go out under the trigger's stamp, with CameraInfo of the simulated pinhole
-cameras and a TimeReference saying when the pressures were sampled. Between triggers both
+cameras and a TimeReference saying when the pressures were sampled. Each accepted command
+is solved when it arrives, so a trigger once the regulators have settled on it (within
+``regulator_resolution_pa``) only renders; a trigger before that is solved at its own
+pressures. Between triggers both
 cameras free-run at ``free_run_hz`` (0: triggers only), stamped with their capture instant,
 showing the current pressures' shape. The work loop is
 :class:`~softshape_ros.sim.stream.SimCameras` (core, no rclpy) in a worker thread, so the
-pressure loop keeps its rate; scene changes and triggers are applied in arrival order.
+pressure loop keeps its rate; commands, scene changes and triggers are served in arrival
+order.
 """
 
 from __future__ import annotations
@@ -38,6 +42,8 @@ from softshape_ros.vision.camera_info import calibration_from_camera
 
 PARAMETERS = [
     Param('tau_s', 0.05, 'regulator first-order time constant, s', (0.0, 60.0)),
+    Param('regulator_resolution_pa', 150.0, 'a chamber within this of its command holds the '
+          'command exactly (settled; 0 = the pure lag, never exactly there)', (0.0, 1e5)),
     Param('publish_rate_hz', 100.0, '/rig/pressure/measured rate', (0.1, 10000.0)),
     Param('pressure_noise_pa', 0.0, 'Gaussian sensor noise on the measured pressures, Pa',
           (0.0, 1e5)),
@@ -69,7 +75,8 @@ class MockHardware(Node):
         max_queue, free_run_hz = p.max_pending_triggers, p.free_run_hz
 
         self.limits = self.cfg.max_pressures_pa
-        self.regulator = FirstOrderRegulator(tau_s, len(self.limits))
+        self.regulator = FirstOrderRegulator(tau_s, len(self.limits),
+                                             resolution_pa=p.regulator_resolution_pa)
         self.rng = np.random.default_rng(seed)
         self.rig = SimRig(self.cfg, seed=seed, image_noise_std=image_noise_std,
                           pressure_noise_pa=0.0)
@@ -87,10 +94,13 @@ class MockHardware(Node):
                 CameraInfo, t.camera('camera_info', cam), qos)
             self.pub_time[cam] = self.create_publisher(
                 TimeReference, t.camera('capture_time', cam), RELIABLE_QOS)
+        # The trigger subscription first: rclpy serves the subscriptions that are ready in one
+        # wait in creation order, so a trigger waiting beside a newer command samples the
+        # pressures before that command moves the regulators (as the trigger came first).
+        self.create_subscription(Header, t.trigger, self._on_trigger, RELIABLE_QOS)
         self.create_subscription(Float64MultiArray, t.pressure_command, self._on_command,
                                  RELIABLE_QOS)
         self.create_subscription(String, t.scene, self._on_scene, LATCHED_QOS)
-        self.create_subscription(Header, t.trigger, self._on_trigger, RELIABLE_QOS)
 
         self.rejected = 0
         self.clamped = 0
@@ -136,6 +146,7 @@ class MockHardware(Node):
         with self._lock:
             self._advance()
             self.regulator.setpoint = checked.pressures_pa.copy()
+            self.cameras.command(checked.pressures_pa)     # in order with the triggers
         self.last_command = time.monotonic()
 
     def _advance(self) -> np.ndarray:
@@ -163,6 +174,7 @@ class MockHardware(Node):
                 and time.monotonic() - self.last_command > self.command_timeout_s):
             with self._lock:
                 self.regulator.setpoint[:] = 0.0
+                self.cameras.command(self.regulator.setpoint)
             self.watchdog_vents += 1
             self.get_logger().warning(f'no command for {self.command_timeout_s:g} s: venting')
         self._measure(self.get_clock().now().nanoseconds)
@@ -219,7 +231,8 @@ class MockHardware(Node):
                      'dropped_triggers': c.dropped,
                      'free_run_hz': c.free_run_hz, 'free_frames': c.free_frames,
                      'skipped_free_frames': c.clock.skipped,
-                     'solves': c.solves, 'reused_shapes': c.reused,
+                     'solves': c.solves, 'command_solves': c.command_solves,
+                     'reused_shapes': c.reused,
                      'trigger_to_image_ms': c.trigger_latency.summary(),
                      'scene': c.scene.id if c.scene else None}, 'SimRig')
 

@@ -1,9 +1,12 @@
 """
-The simulated cameras' work loop: triggers and scene changes in arrival order, free run between.
+The simulated cameras' work loop: commands, scenes, triggers in arrival order, free run between.
 
 ``SimCameras`` owns a :class:`~softshape_ros.sim.rig.SimRig` in one worker thread (the
-simulator is not thread-safe, and the ROS executor must keep its pressure loop). Triggers
-carry the pressures sampled when they arrived; free-run frames sample the current
+simulator is not thread-safe, and the ROS executor must keep its pressure loop). A command
+is solved when it arrives (the robot moves when commanded, not when filmed), so a trigger
+at the settled pressures only renders. Triggers carry the pressures sampled when they
+arrived: a trigger before the regulators settled gets the shape at its own pressures
+(solved then), never the commanded one. Free-run frames sample the current
 pressures themselves at a fixed rate (:class:`FreeRunClock`: a late frame is skipped, never
 queued, so the stream never falls behind the trigger answers). The shape is solved only
 when the scene or the pressures changed; with no image noise the images are reused too.
@@ -13,8 +16,8 @@ with no images, never a stale or made-up one. No rclpy here: the node wires this
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass
-import queue
 import threading
 import time
 from typing import Callable
@@ -33,7 +36,7 @@ class Frames:
     sampled_ns: int             # when the pressures were sampled (= capture time)
     pressures_pa: np.ndarray    # (6,) the pressures the shape was solved at
     images: dict                # camera -> H x W x 3 uint8 RGB
-    solved: bool                # False: the last shape was reused (same scene and pressures)
+    solved: bool                # False: a shape already solved (same scene and pressures)
 
 
 class FreeRunClock:
@@ -67,12 +70,14 @@ class FreeRunClock:
 
 class SimCameras:
     """
-    Simulated cameras: ``trigger()`` and ``set_scene()`` from any thread, frames to ``publish``.
+    Simulated cameras: ``command``, ``trigger``, ``set_scene`` from any thread; frames out.
 
     ``rig`` (a SimRig) is used only by the worker thread once started; ``publish`` gets each
     :class:`Frames` there; ``sample_pressures()`` returns (pressures (6,), sampled_ns) now,
     for free-run frames; ``free_run_hz`` 0 means triggers only; triggers and scene changes
-    queued beyond ``max_pending`` are dropped (counted); ``log(level, message)`` with level
+    queued beyond ``max_pending`` are dropped (counted); a command queued right behind
+    another replaces it (never dropped: only the newest is the robot's target);
+    ``log(level, message)`` with level
     'info', 'warning' or 'error'; ``monotonic`` is the scheduling clock (seconds).
     """
 
@@ -87,15 +92,21 @@ class SimCameras:
         self.clock = FreeRunClock(float(free_run_hz), monotonic())
         self.free_run_hz = float(free_run_hz)
         self.log = log or (lambda level, message: None)
-        self.jobs: queue.Queue = queue.Queue(maxsize=max(1, int(max_pending)))
+        self.max_pending = max(1, int(max_pending))
+        self.jobs: deque = deque()  # ('command' | 'scene' | 'trigger', ...), arrival order
+        self._pending = 0           # scenes and triggers in ``jobs``
+        self._cv = threading.Condition()
         self.scene = None
         self._scene_version = 0
         self._last = None           # (key, state, images or None) of the last good frame
+        self._commanded = None      # the last command's pressures
+        self._target = None         # (key, state) solved at them on arrival
         self._failed_key = None     # the last (scene, pressures) that failed: not retried
         self.frames = 0             # trigger frame sets published
         self.free_frames = 0
-        self.solves = 0
-        self.reused = 0
+        self.solves = 0             # solved for a frame (its pressures were not solved before)
+        self.command_solves = 0     # solved when the command came
+        self.reused = 0             # frames whose shape was already solved
         self.solver_errors = 0
         self.dropped = 0
         self.last_error = ''
@@ -108,14 +119,25 @@ class SimCameras:
         """Queue a scene change (applied in order with the triggers); False if dropped."""
         return self._put(('scene', scene))
 
+    def command(self, pressures_pa) -> None:
+        """Queue the shape at newly commanded pressures, solved in order before later triggers."""
+        job = ('command', np.array(pressures_pa, dtype=float))
+        with self._cv:
+            if self.jobs and self.jobs[-1][0] == 'command':
+                self.jobs[-1] = job     # not solved yet: the newer command supersedes it
+            else:
+                self.jobs.append(job)
+            self._cv.notify()
+
     def trigger(self, stamp_ns: int, pressures_pa, sampled_ns: int) -> bool:
         """Queue a frame set at ``pressures_pa`` stamped ``stamp_ns``; False if dropped."""
         return self._put(('trigger', int(stamp_ns), np.asarray(pressures_pa, dtype=float),
                           int(sampled_ns), self.monotonic()))
 
     def idle(self) -> bool:
-        """Return True when no trigger or scene change is waiting."""
-        return self.jobs.empty()
+        """Return True when no command, trigger or scene change is waiting."""
+        with self._cv:
+            return not self.jobs
 
     def warm_up(self, pressures_pa) -> None:
         """
@@ -138,13 +160,27 @@ class SimCameras:
 
     # -- the worker ------------------------------------------------------------------------
     def _put(self, job) -> bool:
-        try:
-            self.jobs.put_nowait(job)
-            return True
-        except queue.Full:
-            self.dropped += 1
-            self.log('error', f'simulator is behind: {job[0]} dropped, no images for it')
-            return False
+        with self._cv:
+            if self._pending < self.max_pending:
+                self.jobs.append(job)
+                self._pending += 1
+                self._cv.notify()
+                return True
+        self.dropped += 1
+        self.log('error', f'simulator is behind: {job[0]} dropped, no images for it')
+        return False
+
+    def _get(self, wait_s: float):
+        """Return the oldest job, waiting at most ``wait_s`` for one (None: none came)."""
+        with self._cv:
+            if not self.jobs and wait_s > 0:
+                self._cv.wait_for(lambda: bool(self.jobs), timeout=wait_s)
+            if not self.jobs:
+                return None
+            job = self.jobs.popleft()
+            if job[0] != 'command':
+                self._pending -= 1
+            return job
 
     def _run(self) -> None:
         while not self._stop.is_set():
@@ -154,14 +190,10 @@ class SimCameras:
         """
         Do the next piece of work, waiting at most ``max_wait_s`` for it.
 
-        Returns what was done: 'scene', 'trigger', 'free' or None. Queued work comes first;
-        a free-run frame is taken only when nothing waits.
+        Returns what was done: 'command', 'scene', 'trigger', 'free' or None. Queued work
+        comes first; a free-run frame is taken only when nothing waits.
         """
-        wait = min(max_wait_s, self.clock.wait_s(self.monotonic()))
-        try:
-            job = self.jobs.get(timeout=wait) if wait > 0 else self.jobs.get_nowait()
-        except queue.Empty:
-            job = None
+        job = self._get(min(max_wait_s, self.clock.wait_s(self.monotonic())))
         if job is None:
             if not self.clock.take(self.monotonic()):
                 return None
@@ -169,8 +201,13 @@ class SimCameras:
             self._frame('free', sampled_ns, np.asarray(pressures, dtype=float), sampled_ns,
                         None)
             return 'free'
+        if job[0] == 'command':
+            self._commanded = job[1]
+            self._solve_target()
+            return 'command'
         if job[0] == 'scene':
             self._apply_scene(job[1])
+            self._solve_target()
             return 'scene'
         _, stamp_ns, pressures, sampled_ns, queued_s = job
         self._frame('trigger', stamp_ns, pressures, sampled_ns, queued_s)
@@ -189,15 +226,43 @@ class SimCameras:
         self.scene = scene
         self._scene_version += 1
         self._last = None
+        self._target = None
         self._failed_key = None
         if scene is not None:
             self.log('info', f'scene {scene.id}: {scene.object}')
+
+    def _solve_target(self) -> None:
+        """
+        Solve the shape at the commanded pressures in the current scene, unless it is solved.
+
+        A failure is logged only: a frame at these pressures solves again and reports it.
+        """
+        if self._commanded is None:
+            return
+        key = (self._scene_version, self._commanded.tobytes())
+        if self._target is not None and self._target[0] == key:
+            return
+        if self._last is not None and self._last[0] == key:
+            self._target = (key, self._last[1])
+            return
+        self._target = None
+        try:
+            state = self.rig.solve(self._commanded)
+        except Exception as exc:  # SolverError, bad pressures: the frame will say so
+            self.log('warning', f'commanded shape at {self._commanded.tolist()} Pa not solved '
+                                f'({type(exc).__name__}: {exc}); a frame there solves again')
+            return
+        self.command_solves += 1
+        self._target = (key, state)
 
     def _frame_images(self, pressures):
         """Return (images, solved): the shape solved only if the scene or pressures changed."""
         key = (self._scene_version, pressures.tobytes())
         if self._last is not None and self._last[0] == key:
             state, images, solved = self._last[1], self._last[2], False
+            self.reused += 1
+        elif self._target is not None and self._target[0] == key:
+            state, images, solved = self._target[1], None, False
             self.reused += 1
         else:
             state, images, solved = self.rig.solve(pressures), None, True
