@@ -51,7 +51,12 @@ def test_stopping_the_node_vents(sig, reason, ros, tmp_path):
             for tid in (Transition.TRANSITION_CONFIGURE, Transition.TRANSITION_ACTIVATE):
                 req = ChangeState.Request()
                 req.transition.id = tid
-                assert call(ros, change, req, f'transition {tid}').success, out_of(proc)
+                try:
+                    answer = call(ros, change, req, f'transition {tid}')
+                except pytest.fail.Exception as e:     # unanswered: say what the bridge said
+                    pytest.fail(f'{e}\nbridge (alive: {proc.poll() is None}) printed:\n'
+                                f'{out_of(proc)}\nDue log: {vd.applied()[-3:]}')
+                assert answer.success, out_of(proc)
             # Configured (the handshake is done by then) and active: a command is applied. Our
             # publisher's match may be with a bridge process that is gone (still in the graph):
             # the command is repeated until the Due applies it.
