@@ -325,6 +325,10 @@ def test_lifecycle_transitions_vent_at_the_due(ros, vdue):
     assert node.link is None and vdue.applied() == []           # unconfigured: port closed
     assert c.transition(Transition.TRANSITION_CONFIGURE)
     assert node.link.connected and vdue.applied()[-1].reason == 'vent'   # handshake vents
+    # Configure again (a resent request, a second `ros2 lifecycle set`): refused, not fatal
+    # (rclpy's handler raised here and the exception ended the bridge process).
+    assert not c.transition(Transition.TRANSITION_CONFIGURE)
+    assert node.lifecycle == 'inactive' and node.link.connected
     n = len(vdue.applied())
     c.command([10000] * 6)                                     # inactive: refused
     ros.wait_for(lambda: 'not active' in node.last_reject, 5, what='refused while inactive')

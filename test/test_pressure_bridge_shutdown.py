@@ -32,7 +32,7 @@ def out_of(proc):
                                          (signal.SIGKILL, 'watchdog')])
 def test_stopping_the_node_vents(sig, reason, ros, tmp_path):
     from lifecycle_msgs.msg import Transition
-    from lifecycle_msgs.srv import ChangeState
+    from lifecycle_msgs.srv import ChangeState, GetState
     from std_msgs.msg import Float64MultiArray
 
     from softshape_ros.nodes.common import RELIABLE_QOS
@@ -47,16 +47,22 @@ def test_stopping_the_node_vents(sig, reason, ros, tmp_path):
                                         RELIABLE_QOS)
             ros.wait_for(lambda: pub.get_subscription_count() > 0, 60, what='bridge in graph')
             change = node.create_client(ChangeState, '/pressure_bridge/change_state')
+            get_state = node.create_client(GetState, '/pressure_bridge/get_state')
             assert change.wait_for_service(timeout_sec=30)
-            for tid in (Transition.TRANSITION_CONFIGURE, Transition.TRANSITION_ACTIVATE):
+            for tid, goal in ((Transition.TRANSITION_CONFIGURE, 'inactive'),
+                              (Transition.TRANSITION_ACTIVATE, 'active')):
                 req = ChangeState.Request()
                 req.transition.id = tid
                 try:
                     answer = call(ros, change, req, f'transition {tid}')
+                    # A resent request after a lost answer is refused (the state has moved
+                    # on): then the state must be the transition's goal.
+                    state = answer.success or call(ros, get_state, GetState.Request(),
+                                                   'the state').current_state.label
                 except pytest.fail.Exception as e:     # unanswered: say what the bridge said
                     pytest.fail(f'{e}\nbridge (alive: {proc.poll() is None}) printed:\n'
                                 f'{out_of(proc)}\nDue log: {vd.applied()[-3:]}')
-                assert answer.success, out_of(proc)
+                assert state in (True, goal), out_of(proc)
             # Configured (the handshake is done by then) and active: a command is applied. Our
             # publisher's match may be with a bridge process that is gone (still in the graph):
             # the command is repeated until the Due applies it.

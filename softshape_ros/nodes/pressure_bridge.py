@@ -58,6 +58,7 @@ class PressureBridge(LifecycleNode):
 
     def __init__(self, **kwargs):
         super().__init__('pressure_bridge', **kwargs)
+        self._refuse_unavailable_transitions()
         self.cfg = declare_rig_config(self)
         self.params = declare(self, parameters(self.cfg), check=self._check_params,
                               apply=self._apply_params)
@@ -321,6 +322,30 @@ class PressureBridge(LifecycleNode):
                        'last_reject': self.last_reject, 'last_event': self.last_event,
                        'watchdog_timeout_s': self.params.watchdog_timeout_s})
         return fill(stat, level, text, values)
+
+    def _refuse_unavailable_transitions(self) -> None:
+        """
+        Answer a transition the current state does not offer with success=False, as rclcpp does.
+
+        rclpy's own change_state handler raises on it (ros2/rclpy#1209, fixed upstream by
+        #1319 but not in every Jazzy build), and the exception ends the node: a repeated
+        ``ros2 lifecycle set configure``, or a client resending a request whose answer was
+        lost, vented and killed the bridge.
+        """
+        service = self._service_change_state
+        handle = service.callback
+
+        def change_state(request, response):
+            t = request.transition
+            offered = [d[0] for d in self._state_machine.available_transitions]
+            if not t.label and t.id not in offered:
+                state = self._state_machine.current_state[1]
+                self.get_logger().warning(
+                    f'transition {t.id} is not available in state {state}: refused')
+                response.success = False
+                return response
+            return handle(request, response)
+        service.callback = change_state
 
 
 main = main_wrapper(PressureBridge)
