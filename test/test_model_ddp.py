@@ -70,7 +70,9 @@ def test_softshape_train_cli_runs_unchanged_under_torchrun(tmp_path):
          '--quiet'],
         env=dict(os.environ, OMP_NUM_THREADS='1'), capture_output=True, text=True,
         timeout=240)
-    assert proc.returncode == 0, proc.stderr[-3000:]
+    # On a failure: what the ranks said before the launcher's traceback (the start of stderr)
+    assert proc.returncode == 0, (f'stdout:\n{proc.stdout[-2000:]}\nstderr start:\n'
+                                  f'{proc.stderr[:3000]}\nstderr end:\n{proc.stderr[-1500:]}')
     lines = [ln for ln in proc.stdout.splitlines() if ln.startswith('{')]
     assert len(lines) == 1                      # rank 0 reports, rank 1 stays quiet
     assert json.loads(lines[0])['steps'] == 4
