@@ -53,12 +53,18 @@ def _cameras(rig, clock, hz=10.0, **kw):
     return cams, published, pressures, logs
 
 
-def test_triggers_first_free_frames_on_schedule_and_shapes_solved_only_on_change():
-    clock = FakeClock()
+def counting_rig():
+    """Return a small rig and the list of pressures each of its solves was asked for."""
     rig = small_rig()
     calls = []
     solve = rig.solve
     rig.solve = lambda p: calls.append(np.array(p)) or solve(p)
+    return rig, calls
+
+
+def test_triggers_first_free_frames_on_schedule_and_shapes_solved_only_on_change():
+    clock = FakeClock()
+    rig, calls = counting_rig()
     cams, out, pressures, _ = _cameras(rig, clock)
     assert cams.step(0.0) is None                           # nothing due yet
     clock.t += 0.1
@@ -105,13 +111,19 @@ def test_noise_gives_fresh_images_and_trigger_only_mode_has_no_free_frames():
     assert off.step(0.0) is None and out_off == []
 
 
-def test_failures_give_no_images_and_bad_scenes_keep_the_old_one():
-    clock = FakeClock()
+def failing_rig():
+    """Return a small rig whose every solve fails."""
     rig = small_rig()
 
     def fail(p):
         raise SolverError('did not converge (injected)')
     rig.solve = fail
+    return rig
+
+
+def test_failures_give_no_images_and_bad_scenes_keep_the_old_one():
+    clock = FakeClock()
+    rig = failing_rig()
     cams, out, pressures, logs = _cameras(rig, clock, max_pending=2)
     clock.t += 0.1
     cams.step(0.0)
@@ -159,10 +171,7 @@ def test_worker_thread_streams_and_stops():
 
 def test_a_command_is_solved_on_arrival_and_a_trigger_before_it_settled_gets_its_own_shape():
     clock = FakeClock()
-    rig = small_rig()
-    calls = []
-    solve = rig.solve
-    rig.solve = lambda p: calls.append(np.array(p)) or solve(p)
+    rig, calls = counting_rig()
     cams, out, _, _ = _cameras(rig, clock, hz=0.0)
     target = np.array([3e4, 0, 0, 0, 2e4, 0.0])
     midway = 0.5 * target
@@ -203,11 +212,7 @@ def test_a_command_is_solved_on_arrival_and_a_trigger_before_it_settled_gets_its
 
 def test_a_failed_commanded_solve_is_logged_and_the_frame_solves_and_reports_it():
     clock = FakeClock()
-    rig = small_rig()
-
-    def fail(p):
-        raise SolverError('did not converge (injected)')
-    rig.solve = fail
+    rig = failing_rig()
     cams, out, _, logs = _cameras(rig, clock, hz=0.0)
     cams.command(np.full(6, 1e4))
     cams.trigger(1, np.full(6, 1e4), 1)
