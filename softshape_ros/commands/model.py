@@ -23,9 +23,7 @@ def _train(args) -> int:
                       min_steps=args.min_steps)
     res = train(ds, cfg, out=args.out, indices=rows, progress=not args.quiet)
     summary = {'checkpoint': args.out, 'steps': res.steps,
-               'val_rmse_255': (None if res.best_val_mse is None
-                                else 255 * res.best_val_mse ** 0.5),
-               'copy_val_rmse_255': 255 * res.copy_val_mse ** 0.5}
+               'val_rmse_255': res.val_rmse_255, 'copy_val_rmse_255': res.copy_val_rmse_255}
     if res.config['training']['world_size'] == 1 or _rank() == 0:
         print(json.dumps(summary))
     return 0

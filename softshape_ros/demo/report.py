@@ -66,13 +66,14 @@ def write_report(root: Path, settings, results: dict, wall_s: float | None = Non
     rec, ds, tr = results['record'], results['dataset'], results['train']
     ev, lv = results['evaluate'], results['live']
     topics = rec.get('bag_info', {}).get('topics', [])
+    arch = tr.get('arch', 'ours')       # results written before the tube demo: ours
     start = (f'fine-tuned from the checkpoint pre-trained on simulation `{tr["pretrained"]}`'
              if tr.get('pretrained') else 'trained from scratch')
     lines = [
         '# softshape_ros demo report', '',
         'The whole pipeline on the simulated rig: mock_hardware (Cosserat simulator + renderer),',
         'collector and recorder as separate ROS 2 processes -> rosbag2 bag -> dataset -> '
-        f'`{tr.get("arch", "ours")}`',
+        f'`{arch}`',
         'model -> evaluation -> the inference node live against the mock rig.', '',
         f'Settings: `{json.dumps({k: getattr(settings, k) for k in vars(settings)})}`', '',
         '## Stages', '',
@@ -93,7 +94,7 @@ def write_report(root: Path, settings, results: dict, wall_s: float | None = Non
         '', '## Dataset', '',
         f'{ds.get("count")} samples, views {ds.get("views")}; dropped: '
         f'`{json.dumps(ds.get("dropped"))}`.', '',
-        f'## Training (`{tr.get("arch", "ours")}`, random 80/20 split as the paper)', '',
+        f'## Training (`{arch}`, random 80/20 split as the paper)', '',
         f'{start}; {tr.get("steps")} steps; validation RMSE {_fmt(tr.get("val_rmse_255"))} '
         f'(0-255 scale) vs {_fmt(tr.get("copy_val_rmse_255"))} for copying the initial image.',
         '', '## Evaluation on the validation rows', '']

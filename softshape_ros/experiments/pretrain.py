@@ -101,8 +101,7 @@ def pretrain(settings: PretrainSettings, out, work, progress: bool = True) -> di
     secs = time.perf_counter() - t0
     return {'checkpoint': str(out), 'dataset': str(ds.path), 'samples': len(ds),
             'keypoint_steps': steps, 'steps': res.steps,
-            'val_rmse_255': (None if res.best_val_mse is None
-                             else 255 * res.best_val_mse ** 0.5),
-            'copy_val_rmse_255': 255 * res.copy_val_mse ** 0.5, 'train_seconds': round(secs),
+            'val_rmse_255': res.val_rmse_255, 'copy_val_rmse_255': res.copy_val_rmse_255,
+            'train_seconds': round(secs),
             'train_samples_per_s': round((steps + res.steps) * settings.batch_size / secs, 1),
             'settings': asdict(settings)}

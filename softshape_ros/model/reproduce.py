@@ -85,8 +85,7 @@ def _fit_and_score(ds, rows, test, tc, ckpt, sil, desc) -> dict:
     p = predict_rows(pred, ds, test)
     m = evaluate_arrays(np.asarray(ds.initial[test]), np.asarray(ds.target[test]), p, sil,
                         touching_flags(ds, test), no_contact_why(ds))
-    m.update(train_seconds=secs, steps=res.steps,
-             val_rmse=255 * res.best_val_mse ** 0.5)
+    m.update(train_seconds=secs, steps=res.steps, val_rmse=res.val_rmse_255)
     return m
 
 

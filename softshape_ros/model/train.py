@@ -82,6 +82,16 @@ class TrainResult:
     copy_val_mse: float
     steps: int
 
+    @property
+    def val_rmse_255(self) -> float | None:
+        """Return the best validation RMSE on the 0-255 scale (None: nothing drawn)."""
+        return None if self.best_val_mse is None else 255 * self.best_val_mse ** 0.5
+
+    @property
+    def copy_val_rmse_255(self) -> float:
+        """Return the RMSE of copying the initial images, on the 0-255 scale."""
+        return 255 * self.copy_val_mse ** 0.5
+
 
 @dataclass
 class Rows:

@@ -239,7 +239,7 @@ class SimCameras:
         """
         if self._commanded is None:
             return
-        key = (self._scene_version, self._commanded.tobytes())
+        key = self._key(self._commanded)
         if self._target is not None and self._target[0] == key:
             return
         if self._last is not None and self._last[0] == key:
@@ -255,9 +255,13 @@ class SimCameras:
         self.command_solves += 1
         self._target = (key, state)
 
+    def _key(self, pressures) -> tuple:
+        """Return what a shape depends on: the scene (its version) and the pressures."""
+        return self._scene_version, pressures.tobytes()
+
     def _frame_images(self, pressures):
         """Return (images, solved): the shape solved only if the scene or pressures changed."""
-        key = (self._scene_version, pressures.tobytes())
+        key = self._key(pressures)
         if self._last is not None and self._last[0] == key:
             state, images, solved = self._last[1], self._last[2], False
             self.reused += 1
@@ -274,7 +278,7 @@ class SimCameras:
         return images, solved
 
     def _frame(self, kind, stamp_ns, pressures, sampled_ns, queued_s) -> None:
-        key = (self._scene_version, pressures.tobytes())
+        key = self._key(pressures)
         if kind == 'free' and key == self._failed_key:
             return                  # it failed at exactly these pressures: wait for a change
         try:
