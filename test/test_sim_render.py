@@ -17,6 +17,7 @@ from softshape_ros.config import load_rig_config
 from softshape_ros.scene import Scene
 from softshape_ros.sim import SimRig, SimState
 from softshape_ros.sim.camera import PinholeCamera
+from softshape_ros.sim.render import render_view
 from softshape_ros.vision.preprocess import preprocess, to_gray
 
 CFG = load_rig_config()
@@ -126,6 +127,31 @@ def test_fast_crop_render_matches_preprocess_of_full_frame():
         d = np.abs(fast[name].astype(int) - ref)
         assert fast[name].shape == ref.shape == (1, 64, 64)
         assert d.mean() < 1.0 and np.percentile(d, 99) < 16, (d.mean(), np.percentile(d, 99))
+
+
+def test_gray_render_is_the_gray_of_the_colour_render():
+    """A gray view is what cv2.cvtColor makes of the colour one; noisy inputs stay seeded noise."""
+    rig = SimRig(CFG)
+    rig.set_scene(sphere_scene(0.035))
+    st = rig.solve([0.0, 1.5e5, 0.0, 0.0, 1.0e5, 0.0])
+    for name, cam in rig.cameras.items():
+        for grid in (cam.grid(), cam.grid(cam.crop, (256, 256))):
+            rgb = render_view(cam, st.backbone_m, st.radii_m, rig.obstacles, grid)
+            gray = render_view(cam, st.backbone_m, st.radii_m, rig.obstacles, grid, gray=True)
+            assert gray.shape == rgb.shape[:2] and gray.dtype == np.uint8
+            d = np.abs(gray.astype(int) - cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY))
+            # Bit-exact with this OpenCV; another version's rounding may move a level.
+            assert d.max() <= 1 and d.mean() < 0.01, (name, d.max(), d.mean())
+            assert len(np.unique(gray)) > 20          # shaded robot, object and background
+    noisy = SimRig(CFG, seed=3, image_noise_std=4.0)
+    noisy.set_scene(sphere_scene(0.035))
+    again = SimRig(CFG, seed=3, image_noise_std=4.0)
+    again.set_scene(sphere_scene(0.035))
+    a, b = noisy.render_inputs(st), again.render_inputs(st)
+    clean = rig.render_inputs(st)
+    for name in a:
+        assert np.array_equal(a[name], b[name])      # seeded
+        assert 0.3 < np.abs(a[name].astype(int) - clean[name]).mean() < 4.0
 
 
 # -- the compiled renderer against the reference images and exact geometry ----------------------

@@ -325,14 +325,65 @@ def _prism_mesh(width, depth, height, skew):
 
 # -- rasterisation -------------------------------------------------------------------------------
 @numba.njit(**_INLINE)
-def _triangle(ax, ay, az, bx, by, bz, qx, qy, qz, na0, na1, na2, nb0, nb1, nb2, nc0, nc1, nc2,
-              ident_n, depth, ident, normal):
+def _shade(out, i, j, nx, ny, nz, shade, light):
     """
-    Z-buffer one triangle given in grid coordinates (j, i) with 1/z and normals per vertex.
+    Write pixel (i, j): Lambertian head light on the (unnormalised) normal.
+
+    ``shade`` = (R, G, B on 0-255, ambient share) of the surface's material. A one-channel
+    ``out`` gets the RGB pixel's gray (:func:`_gray`).
+    """
+    lambert = (nx * light[0] + ny * light[1] + nz * light[2]) / np.sqrt(nx * nx + ny * ny
+                                                                        + nz * nz)
+    lambert = min(max(lambert, 0.0), 1.0)
+    s = shade[3] + (1.0 - shade[3]) * lambert
+    # Rounded to the nearest level (values are >= 0 and < 255.5).
+    r, g, b = np.uint8(shade[0] * s + 0.5), np.uint8(shade[1] * s + 0.5), \
+        np.uint8(shade[2] * s + 0.5)
+    if out.shape[2] == 1:
+        out[i, j, 0] = _gray(r, g, b)
+    else:
+        out[i, j, 0], out[i, j, 1], out[i, j, 2] = r, g, b
+
+
+@numba.njit(**_INLINE)
+def _gray(r, g, b):
+    """
+    Return the gray level of an RGB uint8 pixel, as OpenCV's COLOR_RGB2GRAY computes it.
+
+    BT.601 weights in 15-bit fixed point, rounded: bit-exact with cv2.cvtColor of OpenCV
+    5.0 over all 2^24 colours (a version with other rounding differs by at most one level).
+    """
+    return np.uint8((np.int32(r) * 9798 + np.int32(g) * 19235 + np.int32(b) * 3735 + 16384)
+                    >> 15)
+
+
+@numba.njit(**_INLINE)
+def _span(w, d, tol, lo, hi):
+    """Narrow [lo, hi] to the steps n where the edge function w + d n is <= tol (inside)."""
+    if d > 0.0:
+        x = (tol - w) / d
+        if x < hi:
+            hi = math.floor(x) if x >= lo else lo - 1
+    elif d < 0.0:
+        x = (tol - w) / d
+        if x > lo:
+            lo = math.ceil(x) if x <= hi else hi + 1
+    elif not w <= tol:
+        hi = lo - 1
+    return lo, hi
+
+
+@numba.njit(**_INLINE)
+def _triangle(ax, ay, az, bx, by, bz, qx, qy, qz, na0, na1, na2, nb0, nb1, nb2, nc0, nc1, nc2,
+              shade, light, depth, out):
+    """
+    Z-buffer and shade one triangle given in grid coordinates (j, i), 1/z and normals per vertex.
 
     Front faces only (negative area with x right, y down). ``depth`` holds 1/z (larger is
     nearer), interpolated linearly in the image (exact on the triangle's plane); normals
-    are interpolated perspective-correctly.
+    are interpolated perspective-correctly. Each pixel the triangle wins is shaded at once
+    (:func:`_shade`): with closed meshes few pixels are drawn twice, and no normal or id
+    buffer has to be written and read back (the frame's memory traffic was most of its time).
     """
     H, W = depth.shape
     area = (bx - ax) * (qy - ay) - (by - ay) * (qx - ax)
@@ -353,33 +404,39 @@ def _triangle(ax, ay, az, bx, by, bz, qx, qy, qz, na0, na1, na2, nb0, nb1, nb2, 
     tol = 1e-9 * -area                            # shared edges: no pixel falls between
     da, db, dc = -(qy - by), -(ay - qy), -(by - ay)
     for i in range(i0, i1 + 1):
-        # Edge functions (area x barycentric weight, <= 0 inside), linear along the row.
+        # Edge functions (area x barycentric weight, <= 0 inside), linear along the row:
+        # the row's covered pixels are one span, found from the three edges at once.
         wa = (qx - bx) * (i - by) - (qy - by) * (j0 - bx)
         wb = (ax - qx) * (i - qy) - (ay - qy) * (j0 - qx)
         wc = (bx - ax) * (i - ay) - (by - ay) * (j0 - ax)
-        for j in range(j0, j1 + 1):
-            if wa <= tol and wb <= tol and wc <= tol:
-                iz = wa * za + wb * zb + wc * zc
-                if iz > depth[i, j]:
-                    # Nearer (the buffer holds 1/z). The normal is left unnormalised (the
-                    # shading does that once per pixel).
-                    depth[i, j] = iz
-                    ident[i, j] = ident_n
-                    normal[i, j, 0] = wa * nax + wb * nbx + wc * ncx
-                    normal[i, j, 1] = wa * nay + wb * nby + wc * ncy
-                    normal[i, j, 2] = wa * naz + wb * nbz + wc * ncz
+        lo, hi = _span(wa, da, tol, 0, j1 - j0)
+        lo, hi = _span(wb, db, tol, lo, hi)
+        lo, hi = _span(wc, dc, tol, lo, hi)
+        if lo > hi:
+            continue
+        wa += da * lo
+        wb += db * lo
+        wc += dc * lo
+        for j in range(j0 + lo, j0 + hi + 1):
+            iz = wa * za + wb * zb + wc * zc
+            if iz > depth[i, j]:
+                depth[i, j] = iz                  # nearer (the buffer holds 1/z)
+                _shade(out, i, j, wa * nax + wb * nbx + wc * ncx,
+                       wa * nay + wb * nby + wc * ncy, wa * naz + wb * nbz + wc * ncz,
+                       shade, light)
             wa += da
             wb += db
             wc += dc
 
 
 @numba.njit(**_JIT)
-def _raster_mesh(verts, norms, tris, material, grid, depth, ident, normal):
+def _raster_mesh(verts, norms, tris, shade, light, grid, depth, out):
     """
-    Z-buffer the front faces of a camera-frame mesh, cut at :data:`NEAR_M` in front.
+    Z-buffer and shade the front faces of a camera-frame mesh, cut at :data:`NEAR_M` in front.
 
     ``grid`` = (fx, fy, cx, cy, u0, du, v0, dv): pixel (i, j) is the ray through image point
-    (u0 + du j, v0 + dv i). ``ident`` gets ``material`` where the mesh is nearest.
+    (u0 + du j, v0 + dv i). ``out`` gets the material ``shade`` (:func:`_shade`) where the
+    mesh is nearest.
     """
     fx, fy, cx, cy, u0, du, v0, dv = grid
     V = verts.shape[0]
@@ -399,7 +456,7 @@ def _raster_mesh(verts, norms, tris, material, grid, depth, ident, normal):
             _triangle(scr[a, 0], scr[a, 1], scr[a, 2], scr[b, 0], scr[b, 1], scr[b, 2],
                       scr[c, 0], scr[c, 1], scr[c, 2], norms[a, 0], norms[a, 1], norms[a, 2],
                       norms[b, 0], norms[b, 1], norms[b, 2], norms[c, 0], norms[c, 1],
-                      norms[c, 2], material, depth, ident, normal)
+                      norms[c, 2], shade, light, depth, out)
             continue
         if inside == 0:
             continue
@@ -427,7 +484,7 @@ def _raster_mesh(verts, norms, tris, material, grid, depth, ident, normal):
             _triangle(pscr[0, 0], pscr[0, 1], pscr[0, 2], pscr[q, 0], pscr[q, 1], pscr[q, 2],
                       pscr[q + 1, 0], pscr[q + 1, 1], pscr[q + 1, 2], pnrm[0, 0], pnrm[0, 1],
                       pnrm[0, 2], pnrm[q, 0], pnrm[q, 1], pnrm[q, 2], pnrm[q + 1, 0],
-                      pnrm[q + 1, 1], pnrm[q + 1, 2], material, depth, ident, normal)
+                      pnrm[q + 1, 1], pnrm[q + 1, 2], shade, light, depth, out)
 
 
 # -- the frame ---------------------------------------------------------------------------------
@@ -472,14 +529,14 @@ def _objects_mesh(objs, grid, tol_px):
 
 
 @numba.njit(**_JIT)
-def _render_kernel(out, depth, ident, normal, grid, pc, radii, overts, onorms, otris, tol_px,
-                   light, robot_rgb, robot_amb, obj_rgb, obj_amb, bg):
+def _render_kernel(out, depth, grid, pc, radii, overts, onorms, otris, tol_px, light,
+                   robot_shade, obj_shade, bg):
     """
-    Mesh and z-buffer the robot (camera-frame backbone ``pc``) and the objects' mesh, then shade.
+    Mesh, z-buffer and shade the robot (camera-frame backbone ``pc``) and the objects' mesh.
 
-    ``depth`` (1/z), ``ident`` (0 robot, 1 object, -1 background) and ``normal`` are work
-    buffers of the frame's size; ``out`` gets the H x W x 3 uint8 image. Returns 0, or the
-    code of what is wrong with the backbone (``_ERRORS``) before drawing anything.
+    ``depth`` (1/z) is a work buffer of the frame's size; ``out`` gets the H x W x C uint8
+    image (C = 3 for RGB, 1 for gray). Returns 0, or the code of what is wrong with the
+    backbone (``_ERRORS``) before drawing anything.
     """
     # The robot's ring size: chords within tol_px where the tube is largest in the image.
     scale = max(grid[0] / grid[5], grid[1] / grid[7])
@@ -495,34 +552,16 @@ def _render_kernel(out, depth, ident, normal, grid, pc, radii, overts, onorms, o
         r_px = max(r_px, radii[k] * scale / (pc[k, 2] - radii[k]))
     n_theta = segments(r_px, tol_px)
     depth[:, :] = 0.0                             # 1/z: nothing is at z = inf
-    ident[:, :] = -1
-    verts, norms, tris = tube_mesh(pc, radii, n_theta, max(2, n_theta // 4))
-    _raster_mesh(verts, norms, tris, 0, grid, depth, ident, normal)
-    _raster_mesh(overts, onorms, otris, 1, grid, depth, ident, normal)
     H, W = depth.shape
-    lx, ly, lz = light[0], light[1], light[2]
-    r0, r1, r2 = robot_rgb[0] * 255.0, robot_rgb[1] * 255.0, robot_rgb[2] * 255.0
-    o0, o1, o2 = obj_rgb[0] * 255.0, obj_rgb[1] * 255.0, obj_rgb[2] * 255.0
-    for i in range(H):
-        for j in range(W):
-            k = ident[i, j]
-            if k < 0:
+    if out.shape[2] == 1:
+        out[:, :, 0] = _gray(bg[0], bg[1], bg[2])
+    else:
+        for i in range(H):
+            for j in range(W):
                 out[i, j, 0], out[i, j, 1], out[i, j, 2] = bg[0], bg[1], bg[2]
-                continue
-            nx, ny, nz = normal[i, j, 0], normal[i, j, 1], normal[i, j, 2]
-            lambert = (nx * lx + ny * ly + nz * lz) / np.sqrt(nx * nx + ny * ny + nz * nz)
-            lambert = min(max(lambert, 0.0), 1.0)
-            # Rounded to the nearest level (values are >= 0 and < 255.5).
-            if k == 0:
-                s = robot_amb + (1.0 - robot_amb) * lambert
-                out[i, j, 0] = np.uint8(r0 * s + 0.5)
-                out[i, j, 1] = np.uint8(r1 * s + 0.5)
-                out[i, j, 2] = np.uint8(r2 * s + 0.5)
-            else:
-                s = obj_amb + (1.0 - obj_amb) * lambert
-                out[i, j, 0] = np.uint8(o0 * s + 0.5)
-                out[i, j, 1] = np.uint8(o1 * s + 0.5)
-                out[i, j, 2] = np.uint8(o2 * s + 0.5)
+    verts, norms, tris = tube_mesh(pc, radii, n_theta, max(2, n_theta // 4))
+    _raster_mesh(verts, norms, tris, robot_shade, light, grid, depth, out)
+    _raster_mesh(overts, onorms, otris, obj_shade, light, grid, depth, out)
     return 0
 
 
@@ -579,13 +618,12 @@ def pack_objects(camera: PinholeCamera, obstacles) -> np.ndarray:
 _workspace = threading.local()
 
 
-def _buffers(H, W):
-    """Return reusable depth, id and normal buffers for an H x W frame (one set per thread)."""
-    cache = getattr(_workspace, 'cache', None)
-    if cache is None or cache[0].shape != (H, W):
-        _workspace.cache = cache = (np.empty((H, W), np.float32), np.empty((H, W), np.int32),
-                                    np.empty((H, W, 3), np.float32))
-    return cache
+def _depth_buffer(H, W):
+    """Return a reusable H x W depth buffer (one per thread)."""
+    depth = getattr(_workspace, 'depth', None)
+    if depth is None or depth.shape != (H, W):
+        _workspace.depth = depth = np.empty((H, W), np.float32)
+    return depth
 
 
 @dataclass(frozen=True)
@@ -614,9 +652,13 @@ def _grid8(camera: PinholeCamera, grid) -> np.ndarray:
 
 
 def render_view(camera: PinholeCamera, centres: np.ndarray, radii: np.ndarray, obstacles,
-                grid=None, objects=None, tol_px: float = OUTLINE_TOLERANCE_PX) -> np.ndarray:
+                grid=None, objects=None, tol_px: float = OUTLINE_TOLERANCE_PX,
+                gray: bool = False) -> np.ndarray:
     """
     Return an H x W x 3 uint8 RGB image of the tube through ``centres`` and the obstacles.
+
+    With ``gray``, the H x W gray image instead: each pixel what ``cv2.cvtColor`` makes of
+    the RGB one, without the colour frame being written and converted.
 
     ``grid`` comes from :meth:`PinholeCamera.grid` (default: the full frame); ``objects``
     is :func:`pack_objects` of ``obstacles`` for this camera, or their
@@ -640,18 +682,19 @@ def render_view(camera: PinholeCamera, centres: np.ndarray, radii: np.ndarray, o
     elif objects.grid != tuple(grid) or objects.tol_px != float(tol_px):
         raise ValueError('render_view: the object mesh was made for another grid or tolerance')
     pc = (c - camera.position) @ camera.R          # camera frame
-    depth, ident, normal = _buffers(H, W)
-    out = np.empty((H, W, 3), np.uint8)
-    err = _render_kernel(out, depth, ident, normal, _grid8(camera, grid), pc,
-                         np.ascontiguousarray(r), objects.verts, objects.norms, objects.tris,
-                         float(tol_px), camera.head_light, ROBOT_RGB, ROBOT_AMBIENT,
-                         OBJECT_RGB, OBJECT_AMBIENT, _BG)
+    depth = _depth_buffer(H, W)
+    out = np.empty((H, W, 1 if gray else 3), np.uint8)
+    err = _render_kernel(out, depth, _grid8(camera, grid), pc, np.ascontiguousarray(r),
+                         objects.verts, objects.norms, objects.tris, float(tol_px),
+                         camera.head_light, _ROBOT_SHADE, _OBJECT_SHADE, _BG)
     if err:
         raise RenderError(f'camera {camera.name}: {_ERRORS[err]}')
-    return out
+    return out[:, :, 0] if gray else out
 
 
 _BG = np.clip(np.rint(BACKGROUND_RGB * 255.0), 0, 255).astype(np.uint8)
+_ROBOT_SHADE = np.append(ROBOT_RGB * 255.0, ROBOT_AMBIENT)     # see _shade
+_OBJECT_SHADE = np.append(OBJECT_RGB * 255.0, OBJECT_AMBIENT)
 _ERRORS = {1: 'backbone points and radii must be finite', 2: 'tube radii must be > 0',
            3: 'the robot reaches the camera plane'}
 
