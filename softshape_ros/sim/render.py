@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numba
 import numpy as np
@@ -528,15 +528,42 @@ def _objects_mesh(objs, grid, tol_px):
     return verts, norms, out
 
 
-@numba.njit(**_JIT)
-def _render_kernel(out, depth, grid, pc, radii, overts, onorms, otris, tol_px, light,
-                   robot_shade, obj_shade, bg):
-    """
-    Mesh, z-buffer and shade the robot (camera-frame backbone ``pc``) and the objects' mesh.
+@numba.njit(**_INLINE)
+def _copy(dst, src):
+    """Copy flat ``src`` into ``dst`` (a plain loop: numba's slice assignment is slower)."""
+    for k in range(dst.shape[0]):
+        dst[k] = src[k]
 
-    ``depth`` (1/z) is a work buffer of the frame's size; ``out`` gets the H x W x C uint8
-    image (C = 3 for RGB, 1 for gray). Returns 0, or the code of what is wrong with the
-    backbone (``_ERRORS``) before drawing anything.
+
+@numba.njit(**_JIT)
+def _objects_kernel(out, depth, grid, overts, onorms, otris, light, obj_shade, bg):
+    """
+    Z-buffer and shade the objects' mesh alone on the background: a scene's fixed layer.
+
+    ``depth`` gets 1/z (0 where nothing is), ``out`` the H x W x C uint8 image (C = 3 for
+    RGB, 1 for gray).
+    """
+    depth[:, :] = 0.0                             # 1/z: nothing is at z = inf
+    H, W = depth.shape
+    if out.shape[2] == 1:
+        out[:, :, 0] = _gray(bg[0], bg[1], bg[2])
+    else:
+        for i in range(H):
+            for j in range(W):
+                out[i, j, 0], out[i, j, 1], out[i, j, 2] = bg[0], bg[1], bg[2]
+    _raster_mesh(overts, onorms, otris, obj_shade, light, grid, depth, out)
+
+
+@numba.njit(**_JIT)
+def _render_kernel(out, depth, grid, pc, radii, layer_depth, layer_out, tol_px, light,
+                   robot_shade):
+    """
+    Mesh the robot (camera-frame backbone ``pc``), then z-buffer and shade it over the objects.
+
+    ``layer_depth`` and ``layer_out`` are the objects' layer (:func:`_objects_kernel`),
+    copied into the work buffer ``depth`` and the image ``out`` before the robot is drawn.
+    Returns 0, or the code of what is wrong with the backbone (``_ERRORS``) before drawing
+    anything.
     """
     # The robot's ring size: chords within tol_px where the tube is largest in the image.
     scale = max(grid[0] / grid[5], grid[1] / grid[7])
@@ -551,17 +578,10 @@ def _render_kernel(out, depth, grid, pc, radii, overts, onorms, otris, tol_px, l
             return 3
         r_px = max(r_px, radii[k] * scale / (pc[k, 2] - radii[k]))
     n_theta = segments(r_px, tol_px)
-    depth[:, :] = 0.0                             # 1/z: nothing is at z = inf
-    H, W = depth.shape
-    if out.shape[2] == 1:
-        out[:, :, 0] = _gray(bg[0], bg[1], bg[2])
-    else:
-        for i in range(H):
-            for j in range(W):
-                out[i, j, 0], out[i, j, 1], out[i, j, 2] = bg[0], bg[1], bg[2]
+    _copy(depth.reshape(-1), layer_depth.reshape(-1))
+    _copy(out.reshape(-1), layer_out.reshape(-1))
     verts, norms, tris = tube_mesh(pc, radii, n_theta, max(2, n_theta // 4))
     _raster_mesh(verts, norms, tris, robot_shade, light, grid, depth, out)
-    _raster_mesh(overts, onorms, otris, obj_shade, light, grid, depth, out)
     return 0
 
 
@@ -628,13 +648,30 @@ def _depth_buffer(H, W):
 
 @dataclass(frozen=True)
 class ObjectMesh:
-    """The objects of a scene meshed for one camera and pixel grid (camera frame)."""
+    """
+    The objects of a scene meshed for one camera and pixel grid (camera frame).
+
+    The objects do not move within a scene, so their drawing on the background is made once
+    per colour format (:meth:`layer`) and every frame starts from a copy of it.
+    """
 
     grid: tuple
     tol_px: float
     verts: np.ndarray       # (V, 3)
     norms: np.ndarray       # (V, 3)
     tris: np.ndarray        # (T, 3) int32
+    layers: dict = field(default_factory=dict, compare=False, repr=False)
+
+    def layer(self, camera: PinholeCamera, channels: int):
+        """Return (1/z (H, W) float32, image (H, W, channels) uint8) of the objects alone."""
+        made = self.layers.get(channels)
+        if made is None:
+            W, H = self.grid[4], self.grid[5]
+            made = (np.empty((H, W), np.float32), np.empty((H, W, channels), np.uint8))
+            _objects_kernel(made[1], made[0], _grid8(camera, self.grid), self.verts,
+                            self.norms, self.tris, camera.head_light, _OBJECT_SHADE, _BG)
+            self.layers[channels] = made
+        return made
 
 
 def object_mesh_for(camera: PinholeCamera, objects: np.ndarray, grid=None,
@@ -683,10 +720,12 @@ def render_view(camera: PinholeCamera, centres: np.ndarray, radii: np.ndarray, o
         raise ValueError('render_view: the object mesh was made for another grid or tolerance')
     pc = (c - camera.position) @ camera.R          # camera frame
     depth = _depth_buffer(H, W)
-    out = np.empty((H, W, 1 if gray else 3), np.uint8)
+    channels = 1 if gray else 3
+    out = np.empty((H, W, channels), np.uint8)
+    layer_depth, layer_out = objects.layer(camera, channels)
     err = _render_kernel(out, depth, _grid8(camera, grid), pc, np.ascontiguousarray(r),
-                         objects.verts, objects.norms, objects.tris, float(tol_px),
-                         camera.head_light, _ROBOT_SHADE, _OBJECT_SHADE, _BG)
+                         layer_depth, layer_out, float(tol_px), camera.head_light,
+                         _ROBOT_SHADE)
     if err:
         raise RenderError(f'camera {camera.name}: {_ERRORS[err]}')
     return out[:, :, 0] if gray else out
