@@ -150,6 +150,7 @@ class Planner:
         k = u.shape[0]
         eye = torch.eye(N_U)
         lam = torch.full((k,), cfg.lm_damping)
+        nu = torch.full((k,), 4.0)
         cur_u, cur_cost = u.clone(), torch.full((k,), float('inf'))
         cur_y = cur_r = cur_j = None
         trial = u.clone()
@@ -174,7 +175,10 @@ class Planner:
                 cur_r = torch.where(better[:, None], r[:, 0], cur_r)
                 cur_j = torch.where(better[:, None, None], jac, cur_j)
             gain = (cur_cost - cost) / cost.clamp_min(1e-9)
-            lam = torch.where(better, lam / 3, lam * 4)
+            # Nielsen's schedule: each rejection in a row raises the damping by a growing
+            # factor (4, 8, 16, ...), so a step that overshoots is cut back in a few tries.
+            lam = torch.where(better, lam / 3, lam * nu)
+            nu = torch.where(better, torch.full_like(nu, 4.0), nu * 2)
             cur_u = torch.where(better[:, None], trial, cur_u)
             cur_cost = torch.where(better, cost, cur_cost)
             hist.append(float(cur_cost.min()))
