@@ -9,8 +9,9 @@ area-preserving radius so the outline is unbiased. Front faces only, depth from 
 normals interpolated perspective-correctly; each pixel keeps the nearest surface, so
 occlusion is right whichever is in front. Lambertian shading with a head light; the robot is
 dark, objects mid-light and the background light, so the three stay apart in gray (the
-model learns from them). Everything runs in the camera frame, in one compiled pass per view
-that writes the uint8 image directly.
+model learns from them). Everything runs in the camera frame, compiled, writing the uint8
+image (RGB or gray) directly; the objects are drawn once per scene and view (their layer), so
+a frame is a copy of that and the robot drawn over it.
 """
 
 from __future__ import annotations
@@ -664,13 +665,14 @@ class ObjectMesh:
 
     def layer(self, camera: PinholeCamera, channels: int):
         """Return (1/z (H, W) float32, image (H, W, channels) uint8) of the objects alone."""
-        made = self.layers.get(channels)
+        key = (camera.name, channels)
+        made = self.layers.get(key)
         if made is None:
             W, H = self.grid[4], self.grid[5]
             made = (np.empty((H, W), np.float32), np.empty((H, W, channels), np.uint8))
             _objects_kernel(made[1], made[0], _grid8(camera, self.grid), self.verts,
                             self.norms, self.tris, camera.head_light, _OBJECT_SHADE, _BG)
-            self.layers[channels] = made
+            self.layers[key] = made
         return made
 
 
