@@ -143,26 +143,31 @@ def sparse_pressures(rng: np.random.Generator, n: int, cfg: RigConfig,
     """
     limits = np.asarray(cfg.max_pressures_pa, dtype=float)
     segment = np.array([c.segment for c in cfg.chambers])
+    seg_cols = [np.nonzero(segment == seg)[0] for seg in np.unique(segment)]
     dirs = bend_directions(cfg)
+    if azimuth is not None:
+        aim = np.array([math.cos(azimuth), math.sin(azimuth)])
     out = np.zeros((n, len(segment)))
     todo = np.arange(n)
+    # Everything that does not draw stays out of the loop: a toward draw of single chambers
+    # is mostly rejected, so the loop runs many times for a few rows (make_plan's cost).
     while len(todo):
         m = len(todo)
         pair = rng.uniform(0.0, 1.0, m) < SPARSE_PAIR_SHARE
         level = rng.uniform(0.0, 1.0, (m, len(segment)))
         on = np.zeros((m, len(segment)), bool)
         single = rng.integers(0, len(segment), m)
-        on[np.nonzero(~pair)[0], single[~pair]] = True
-        for seg in np.unique(segment):
-            cols = np.nonzero(segment == seg)[0]
+        rows = np.arange(m)
+        on[rows[~pair], single[~pair]] = True
+        for cols in seg_cols:
             pick = cols[rng.integers(0, len(cols), m)]
-            on[np.nonzero(pair)[0], pick[pair]] = True
+            on[rows[pair], pick[pair]] = True
         u = np.where(on, level, 0.0)
-        ok = np.ones(m, bool)
-        if azimuth is not None:
-            b = u @ dirs
-            aim = np.array([math.cos(azimuth), math.sin(azimuth)])
-            ok = b @ aim >= math.cos(window) * np.linalg.norm(b, axis=1)
+        if azimuth is None:
+            out[todo] = u
+            break
+        b = u @ dirs
+        ok = b @ aim >= math.cos(window) * np.linalg.norm(b, axis=1)
         out[todo[ok]] = u[ok]
         todo = todo[~ok]
     return out * limits
