@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 N_U = 6
+_FIRST_RISE = 4.0      # the damping's factor on a first rejected step (then 8, 16, ...)
 
 
 @dataclass(frozen=True)
@@ -150,7 +151,7 @@ class Planner:
         k = u.shape[0]
         eye = torch.eye(N_U)
         lam = torch.full((k,), cfg.lm_damping)
-        nu = torch.full((k,), 4.0)
+        nu = torch.full((k,), _FIRST_RISE)
         cur_u, cur_cost = u.clone(), torch.full((k,), float('inf'))
         cur_y = cur_r = cur_j = None
         trial = u.clone()
@@ -178,7 +179,7 @@ class Planner:
             # Nielsen's schedule: each rejection in a row raises the damping by a growing
             # factor (4, 8, 16, ...), so a step that overshoots is cut back in a few tries.
             lam = torch.where(better, lam / 3, lam * nu)
-            nu = torch.where(better, torch.full_like(nu, 4.0), nu * 2)
+            nu = torch.where(better, torch.full_like(nu, _FIRST_RISE), nu * 2)
             cur_u = torch.where(better[:, None], trial, cur_u)
             cur_cost = torch.where(better, cost, cur_cost)
             hist.append(float(cur_cost.min()))

@@ -661,18 +661,19 @@ class ObjectMesh:
     verts: np.ndarray       # (V, 3)
     norms: np.ndarray       # (V, 3)
     tris: np.ndarray        # (T, 3) int32
+    grid8: np.ndarray       # the camera's intrinsics and the grid (see _raster_mesh)
+    light: np.ndarray       # the camera's head light
     layers: dict = field(default_factory=dict, compare=False, repr=False)
 
-    def layer(self, camera: PinholeCamera, channels: int):
+    def layer(self, channels: int):
         """Return (1/z (H, W) float32, image (H, W, channels) uint8) of the objects alone."""
-        key = (camera.name, channels)
-        made = self.layers.get(key)
+        made = self.layers.get(channels)
         if made is None:
             W, H = self.grid[4], self.grid[5]
             made = (np.empty((H, W), np.float32), np.empty((H, W, channels), np.uint8))
-            _objects_kernel(made[1], made[0], _grid8(camera, self.grid), self.verts,
-                            self.norms, self.tris, camera.head_light, _OBJECT_SHADE, _BG)
-            self.layers[key] = made
+            _objects_kernel(made[1], made[0], self.grid8, self.verts, self.norms, self.tris,
+                            self.light, _OBJECT_SHADE, _BG)
+            self.layers[channels] = made
         return made
 
 
@@ -680,9 +681,10 @@ def object_mesh_for(camera: PinholeCamera, objects: np.ndarray, grid=None,
                     tol_px: float = OUTLINE_TOLERANCE_PX) -> ObjectMesh:
     """Return the objects (:func:`pack_objects` rows) meshed for ``camera`` and ``grid``."""
     grid = tuple(grid if grid is not None else camera.grid())
-    verts, norms, tris = _objects_mesh(np.ascontiguousarray(objects, dtype=float),
-                                       _grid8(camera, grid), float(tol_px))
-    return ObjectMesh(grid, float(tol_px), verts, norms, tris)
+    grid8 = _grid8(camera, grid)
+    verts, norms, tris = _objects_mesh(np.ascontiguousarray(objects, dtype=float), grid8,
+                                       float(tol_px))
+    return ObjectMesh(grid, float(tol_px), verts, norms, tris, grid8, camera.head_light)
 
 
 def _grid8(camera: PinholeCamera, grid) -> np.ndarray:
@@ -724,7 +726,7 @@ def render_view(camera: PinholeCamera, centres: np.ndarray, radii: np.ndarray, o
     depth = _depth_buffer(H, W)
     channels = 1 if gray else 3
     out = np.empty((H, W, channels), np.uint8)
-    layer_depth, layer_out = objects.layer(camera, channels)
+    layer_depth, layer_out = objects.layer(channels)
     err = _render_kernel(out, depth, _grid8(camera, grid), pc, np.ascontiguousarray(r),
                          layer_depth, layer_out, float(tol_px), camera.head_light,
                          _ROBOT_SHADE)
