@@ -25,7 +25,7 @@ help:
 	@echo "make demo   - set up, then run the whole pipeline on the simulated rig (see README)"
 	@echo "make test   - set up, then run the test suite"
 	@echo "make bench  - set up, then run the benchmarks (JSON on stdout)"
-	@echo "make pretrain - rebuild a checkpoint on simulation: ARGS=\"--arch tube --sparse-share 0 --threads 1\" the demo's models/tube_stereo_gray as shipped, ARGS=\"--sparse-share 0\" models/ours_stereo_gray"
+	@echo "make pretrain - rebuild a checkpoint on simulation: ARGS=\"--arch tube\" the demo's models/tube_stereo_gray as shipped, ARGS=\"--sparse-share 0\" models/ours_stereo_gray"
 	@echo "make clean  - remove build products (keeps .venv)"
 
 setup: build
@@ -66,8 +66,8 @@ test: build
 bench: build
 	$(VPY) -m benchmarks $(ARGS)
 
-# Pre-trained checkpoints (docs/model.md), as shipped (their data predates the sparse share):
-# ARGS="--arch tube --sparse-share 0 --threads 1" models/tube_stereo_gray (the demo's), ARGS="--sparse-share 0" ours.
+# Pre-trained checkpoints (docs/model.md), as shipped: ARGS="--arch tube" models/tube_stereo_gray
+# (the demo's), ARGS="--sparse-share 0" models/ours_stereo_gray (its data predates the sparse share).
 pretrain: build
 	$(VENV)/bin/softshape pretrain $(ARGS)
 

@@ -9,6 +9,7 @@ import torch
 
 from softshape_ros.config import load_rig_config
 from softshape_ros.data import DatasetError, DatasetWriter, load_dataset
+from softshape_ros.demo.pipeline import PRETRAINED
 from softshape_ros.model import Predictor, build_network, load_checkpoint
 from softshape_ros.model.data import SCENE_FEATURES, scene_targets, scene_vector, shape_tensors
 from softshape_ros.model.metrics import RobotSilhouette
@@ -222,6 +223,8 @@ def test_short_tube_training_beats_copy_on_touching_samples(simulated, tmp_path)
     assert touching[val].sum() >= 10, touching[val].sum()
     model, cfg_loaded = load_checkpoint(tmp_path / 'ck')
     assert cfg_loaded['arch'] == 'tube' and cfg_loaded['dataset']['shape_record'] is True
+    # Training builds the visibility that reads the scene code, and the checkpoint says so.
+    assert cfg_loaded['arch_params']['scene_visibility'] is True and model.scene_visibility
     pred = predict_rows(Predictor.from_checkpoint(tmp_path / 'ck'), ds, val)
     m = evaluate_arrays(np.asarray(ds.initial)[val], np.asarray(ds.target)[val], pred,
                         RobotSilhouette.fit(np.asarray(ds.initial)), touching[val])
@@ -259,6 +262,35 @@ def test_tube_network_shapes_and_seeded_start():
     torch.manual_seed(3)
     b = build_network('tube', 1, 1).state_dict()
     assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_the_visibility_reads_the_scene_code_and_older_checkpoints_still_load():
+    # Which of robot and object is in front depends on where the object stands in 3-D: the
+    # visibility's logits must change with the scene code alone (same pixels, same
+    # pressures), and only through it.
+    torch.manual_seed(0)
+    net = build_network('tube', 2, 1, scene_visibility=True)
+    vis = net.visibility
+    with torch.no_grad():
+        for p in vis.parameters():
+            p.add_(0.1 * torch.randn_like(p))
+    x, cond = torch.rand(2, vis.inp[0].in_channels, 64, 64), torch.rand(1, 64).expand(2, -1)
+    code = torch.randn(2, vis.code)
+    same = vis(x[:1].expand(2, -1, -1, -1), torch.cat([cond, code[:1].expand(2, -1)], 1))
+    assert torch.equal(same[0], same[1])
+    other = vis(x[:1].expand(2, -1, -1, -1), torch.cat([cond, code], 1))
+    assert float((other[0] - other[1]).abs().max()) > 1e-3
+    assert vis.fine is not None and other.shape == (2, 2, 64, 64)
+    # A checkpoint made before (no scene_visibility in its arch_params): the pressure-only
+    # visibility, and it loads and predicts as it did (the shipped one is such a model).
+    legacy = build_network('tube', 2, 1)
+    assert not legacy.scene_visibility and legacy.visibility.fine is None
+    assert legacy.visibility.film.in_features == 64
+    model, cfg = load_checkpoint(PRETRAINED)
+    assert model.scene_visibility is cfg['arch_params'].get('scene_visibility', False)
+    y = Predictor.from_checkpoint(PRETRAINED).predict(
+        np.full((2, 1, 64, 64), 200, np.uint8), [0.0] * 6)
+    assert y.shape == (2, 1, 64, 64)
 
 
 def test_tube_trains_under_torchrun_with_two_processes(simulated, tmp_path):

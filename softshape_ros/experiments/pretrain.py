@@ -54,8 +54,8 @@ class PretrainSettings:
 
 #: The tube model's defaults: it needs many placements to learn to see the object
 #: (docs/model.md: 1000 samples over 100 placements overfit them), and data is cheap.
-TUBE = {'samples': 20000, 'scenes': 2000, 'keypoint_steps': 4000, 'max_steps': 600,
-        'eval_every': 250, 'patience': 100}
+TUBE = {'samples': 20000, 'scenes': 2000, 'keypoint_steps': 4000, 'max_steps': 800,
+        'eval_every': 400, 'patience': 100}
 
 
 def simulated_dataset(settings: PretrainSettings, work, progress: bool = True):

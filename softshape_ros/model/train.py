@@ -226,8 +226,10 @@ def _network(ds, config, rows, sil):
     if config.init is None:
         params = dict(config.arch_params)
         truth = rows.train_shape[0]
-        if config.arch == 'tube' and truth is not None:
-            params.setdefault('keypoints', int(truth.shape[2]))
+        if config.arch == 'tube':
+            params.setdefault('scene_visibility', True)
+            if truth is not None:
+                params.setdefault('keypoints', int(truth.shape[2]))
         net = build_network(config.arch, len(ds.views), ds.channels, **params)
         if isinstance(net, TubeNet):
             # The heads start from the mean shape of the record, else the resting robot.
