@@ -10,10 +10,12 @@ import torch
 from softshape_ros.config import load_rig_config
 from softshape_ros.data import DatasetError, DatasetWriter, load_dataset
 from softshape_ros.demo.pipeline import PRETRAINED
-from softshape_ros.model import Predictor, build_network, load_checkpoint
+from softshape_ros.model import CheckpointError, Predictor, build_network, load_checkpoint
+from softshape_ros.model.checkpoint import save_checkpoint
 from softshape_ros.model.data import SCENE_FEATURES, scene_targets, scene_vector, shape_tensors
 from softshape_ros.model.metrics import RobotSilhouette
 from softshape_ros.model.train import TrainConfig, train
+from softshape_ros.model.tube_net import KEYPOINTS
 from softshape_ros.model.tube_render import coverage, tube_field
 from softshape_ros.scene import OBJECT_DIMS, Scene
 from softshape_ros.sim.generate import SHAPE_KEYPOINTS, generate, make_plan
@@ -264,33 +266,46 @@ def test_tube_network_shapes_and_seeded_start():
     assert all(torch.equal(a[k], b[k]) for k in a)
 
 
-def test_the_visibility_reads_the_scene_code_and_older_checkpoints_still_load():
+def test_the_visibility_reads_the_scene_code_and_older_checkpoints_still_load(tmp_path):
     # Which of robot and object is in front depends on where the object stands in 3-D: the
     # visibility's logits must change with the scene code alone (same pixels, same
-    # pressures), and only through it.
+    # pressures).
     torch.manual_seed(0)
     net = build_network('tube', 2, 1, scene_visibility=True)
     vis = net.visibility
     with torch.no_grad():
         for p in vis.parameters():
             p.add_(0.1 * torch.randn_like(p))
-    x, cond = torch.rand(2, vis.inp[0].in_channels, 64, 64), torch.rand(1, 64).expand(2, -1)
+    x, cond = torch.rand(1, vis.inp[0].in_channels, 64, 64), torch.rand(1, 64)
+    x = x.expand(2, -1, -1, -1)
     code = torch.randn(2, vis.code)
-    same = vis(x[:1].expand(2, -1, -1, -1), torch.cat([cond, code[:1].expand(2, -1)], 1))
+    same = vis(x, torch.cat([cond, code[:1]], 1).expand(2, -1))
     assert torch.equal(same[0], same[1])
-    other = vis(x[:1].expand(2, -1, -1, -1), torch.cat([cond, code], 1))
+    other = vis(x, torch.cat([cond.expand(2, -1), code], 1))
     assert float((other[0] - other[1]).abs().max()) > 1e-3
     assert vis.fine is not None and other.shape == (2, 2, 64, 64)
-    # A checkpoint made before (no scene_visibility in its arch_params): the pressure-only
-    # visibility, and it loads and predicts as it did (the shipped one is such a model).
-    legacy = build_network('tube', 2, 1)
+    # The shipped checkpoint is such a model.
+    shipped, cfg = load_checkpoint(PRETRAINED)
+    assert shipped.scene_visibility and cfg['arch_params']['scene_visibility'] is True
+    # A checkpoint made before (no scene_visibility in its arch_params) gets the
+    # pressure-only visibility it was trained with, and predicts as it did.
+    legacy = build_network('tube', 2, 1).eval()
     assert not legacy.scene_visibility and legacy.visibility.fine is None
     assert legacy.visibility.film.in_features == 64
-    model, cfg = load_checkpoint(PRETRAINED)
-    assert model.scene_visibility is cfg['arch_params'].get('scene_visibility', False)
-    y = Predictor.from_checkpoint(PRETRAINED).predict(
-        np.full((2, 1, 64, 64), 200, np.uint8), [0.0] * 6)
-    assert y.shape == (2, 1, 64, 64)
+    old = dict(cfg, arch_params={'keypoints': KEYPOINTS})
+    save_checkpoint(tmp_path / 'old', legacy, old)
+    img = np.random.default_rng(0).integers(0, 256, (2, 1, 64, 64), dtype=np.uint8)
+    with torch.no_grad():
+        want = legacy(torch.from_numpy(img.reshape(1, 2, 64, 64) / 255).float(),
+                      torch.zeros(1, 6))
+    got = Predictor.from_checkpoint(tmp_path / 'old').predict(img, [0.0] * 6)
+    assert np.array_equal(got.reshape(1, 2, 64, 64), torch.clamp(
+        want * 255 + 0.5, 0, 255).to(torch.uint8).numpy())
+    # The old weights under a config that says otherwise: refused, the mismatch named.
+    save_checkpoint(tmp_path / 'mixed', legacy, dict(old, arch_params={
+        'keypoints': KEYPOINTS, 'scene_visibility': True}))
+    with pytest.raises(CheckpointError, match='visibility'):
+        load_checkpoint(tmp_path / 'mixed')
 
 
 def test_tube_trains_under_torchrun_with_two_processes(simulated, tmp_path):
