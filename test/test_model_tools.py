@@ -40,12 +40,13 @@ def test_silhouette_iou_and_tip_separate_good_from_copy():
 @pytest.mark.parametrize('arch', ['paper', 'ours', 'tube'])
 def test_onnx_export_matches_pytorch(arch, tmp_path):
     torch.manual_seed(1)
-    net = build_network(arch, 2, 3)
+    params = {'scene_visibility': True} if arch == 'tube' else {}   # what training builds
+    net = build_network(arch, 2, 3, **params)
     with torch.no_grad():                # ours starts as the identity: make it non-trivial
         for p in net.parameters():
             p.add_(0.05 * torch.randn_like(p))
     ck = save_checkpoint(tmp_path / arch, net, {
-        'arch': arch, 'arch_params': {}, 'views': ['main', 'side'], 'channels': 3,
+        'arch': arch, 'arch_params': params, 'views': ['main', 'side'], 'channels': 3,
         'image_size': 64, 'max_pressure_pa': [1e5] * 6})
     info = export_onnx(ck, tmp_path / f'{arch}.onnx', batch=3)
     assert info['max_abs_diff'] <= 1e-4
