@@ -213,6 +213,53 @@ def test_the_keypoint_phase_validates_without_drawing(simulated, monkeypatch):
     assert drawn and 0 < res.best_val_mse == res.history[-1]['val_mse']
 
 
+def test_scene_batches_hold_whole_placements_and_encode_each_once(simulated, monkeypatch):
+    """--scene-batch: every batch is whole placements; each one's rest images encoded once."""
+    from softshape_ros.model import train as train_mod
+    from softshape_ros.model.tube_net import SceneEncoder
+    scenes = np.array([3, 3, 1, 1, 1, 7, 3, 9, 9, 1, 7])
+    gen = torch.Generator().manual_seed(0)
+    batches = train_mod._batches(len(scenes), 2, 1, gen, scenes)
+    assert sorted(torch.cat(batches).tolist()) == list(range(len(scenes)))   # once each
+    assert [len(set(scenes[b.numpy()])) for b in batches] == [2, 2]
+    for b in batches:           # a placement's rows all in one batch
+        ids = set(scenes[b.numpy()])
+        assert sorted(b.tolist()) == sorted(np.flatnonzero(np.isin(scenes, list(ids))))
+    again = train_mod._batches(len(scenes), 2, 1, torch.Generator().manual_seed(0), scenes)
+    assert all(torch.equal(a, b) for a, b in zip(batches, again))            # seeded
+    # The encoder sees the distinct rest images only, and the keypoints are the same as
+    # from one row at a time.
+    ds = load_dataset(simulated.path)
+    net = build_network('tube', len(ds.views), ds.channels).eval()
+    with torch.no_grad():
+        for q in net.parameters():
+            q.add_(0.05 * torch.randn_like(q))
+    rows = np.array([0, 1, 2, 30, 31, 60])
+    x = torch.from_numpy(np.asarray(ds.initial)[rows].reshape(len(rows), -1, 64, 64)) / 255.0
+    p = torch.rand(len(rows), 6)
+    seen = []
+    forward = SceneEncoder.forward
+    monkeypatch.setattr(SceneEncoder, 'forward',
+                        lambda self, image: seen.append(len(image)) or forward(self, image))
+    distinct = len(set(np.asarray(ds.scene)[rows].tolist()))
+    assert distinct < len(rows)
+    with torch.no_grad():
+        kp = net(x, p, parts='keypoints')[0]
+        one = torch.cat([net(x[i:i + 1], p[i:i + 1], parts='keypoints')[0]
+                         for i in range(len(rows))])
+        image = net(x, p)
+    assert seen[0] == distinct and torch.allclose(kp, one, atol=1e-5)
+    assert seen[-1] == distinct and image.shape == x.shape
+    # A keypoint phase in whole placements trains, and the checkpoint records how.
+    cfg = TrainConfig(arch='tube', loss='keypoints', scene_batch=4, max_steps=40,
+                      eval_every=20, patience=100, seed=0, threads=1, split='scene')
+    res = train(ds, cfg, progress=False)
+    assert res.config['training']['scene_batch'] == 4
+    assert res.history[-1]['val_loss'] < res.history[0]['val_loss']
+    with pytest.raises(ValueError, match='scene_batch'):
+        train(ds, TrainConfig(arch='tube', scene_batch=-1), progress=False)
+
+
 def test_short_tube_training_beats_copy_on_touching_samples(simulated, tmp_path):
     from softshape_ros.model.evaluate import predict_rows
     from softshape_ros.model.metrics import evaluate_arrays

@@ -20,7 +20,7 @@ def _train(args) -> int:
                       batch_size=args.batch_size, lr=args.lr, max_steps=args.max_steps,
                       eval_every=args.eval_every, patience=args.patience,
                       threads=args.threads, loss=args.loss, init=args.init,
-                      min_steps=args.min_steps)
+                      min_steps=args.min_steps, scene_batch=args.scene_batch)
     res = train(ds, cfg, out=args.out, indices=rows, progress=not args.quiet)
     summary = {'checkpoint': args.out, 'steps': res.steps,
                'val_rmse_255': res.val_rmse_255, 'copy_val_rmse_255': res.copy_val_rmse_255}
@@ -79,7 +79,8 @@ def _pretrain(args) -> int:
     from softshape_ros.experiments.pretrain import PretrainSettings, pretrain
     s = PretrainSettings.for_arch(args.arch, **{k: getattr(args, k) for k in (
         'samples', 'scenes', 'seed', 'max_steps', 'batch_size', 'lr', 'eval_every',
-        'patience', 'threads', 'workers', 'keypoint_steps', 'toward_share', 'sparse_share')})
+        'patience', 'threads', 'workers', 'keypoint_steps', 'keypoint_scene_batch',
+        'toward_share', 'sparse_share')})
     out = args.out or f'models/{args.arch}_stereo_gray'
     print(json.dumps(pretrain(s, out, args.work, progress=not args.quiet)))
     return 0
@@ -103,6 +104,9 @@ def register(sub) -> None:
     p.add_argument('--seed', type=int, default=0)
     p.add_argument('--rows', type=int, default=None, help='use only the first N rows')
     p.add_argument('--batch-size', type=int, default=256)
+    p.add_argument('--scene-batch', type=int, default=0,
+                   help='N > 0: batches of N whole placements (all their rows) instead of '
+                        '--batch-size rows; tube encodes each placement once a batch')
     p.add_argument('--lr', type=float, default=None,
                    help="Adam learning rate (default: the architecture's own, "
                         'DEFAULT_LR in softshape_ros/model/train.py)')
@@ -162,7 +166,8 @@ def register(sub) -> None:
     p.add_argument('--work', default='/tmp/softshape_pretrain',
                    help='where the simulated dataset is kept (reused when unchanged)')
     for flag, typ in (('samples', int), ('scenes', int), ('seed', int), ('max-steps', int),
-                      ('keypoint-steps', int), ('batch-size', int), ('lr', float),
+                      ('keypoint-steps', int), ('keypoint-scene-batch', int),
+                      ('batch-size', int), ('lr', float),
                       ('eval-every', int), ('patience', int), ('threads', int),
                       ('toward-share', float), ('sparse-share', float)):
         p.add_argument(f'--{flag}', type=typ, default=None,

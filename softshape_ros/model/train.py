@@ -68,6 +68,10 @@ class TrainConfig:
     patience: int = 8                # rounds without improvement before stopping
     threads: int = 0                 # torch threads per process (0 = leave as is)
     init: str | None = None          # checkpoint to start from (fine-tuning); None: seeded
+    # > 0: every batch is this many whole placements, all their training rows, instead of
+    # batch_size rows. The tube model encodes each placement's rest images once per batch,
+    # so its keypoint phase sees ten actuations for the cost of about one (docs/model.md).
+    scene_batch: int = 0
     arch_params: dict = field(default_factory=dict)
 
 
@@ -104,6 +108,7 @@ class Rows:
     # (keypoints N x V x K x 4, free N bool, scene N x 17), each None where not recorded
     train_shape: tuple = (None, None, None)
     val_shape: tuple = (None, None, None)
+    train_scene: np.ndarray | None = None   # N placement ids of the training rows, in order
 
 
 def _dist():
@@ -118,10 +123,23 @@ def _dist():
     return dist.get_rank(), dist.get_world_size(), True
 
 
-def _batches(n: int, batch: int, world: int, gen: torch.Generator):
-    """Global batches of a seeded permutation; a tail too small to share is merged."""
-    perm = torch.randperm(n, generator=gen)
-    out = [perm[i:i + batch] for i in range(0, n, batch)]
+def _batches(n: int, batch: int, world: int, gen: torch.Generator, scenes=None):
+    """
+    Global batches of a seeded permutation; a tail too small to share is merged.
+
+    ``scenes`` (N placement ids): ``batch`` whole placements per batch, in a seeded order.
+    """
+    if scenes is None:
+        perm = torch.randperm(n, generator=gen)
+        out = [perm[i:i + batch] for i in range(0, n, batch)]
+    else:
+        ids = np.asarray(scenes)
+        order = np.argsort(ids, kind='stable')                       # rows by placement
+        groups = [torch.from_numpy(g) for g in
+                  np.split(order, np.flatnonzero(np.diff(ids[order])) + 1)]
+        perm = torch.randperm(len(groups), generator=gen).tolist()
+        out = [torch.cat([groups[g] for g in perm[i:i + batch]])
+               for i in range(0, len(perm), batch)]
     if len(out) > 1 and len(out[-1]) < world:
         out[-2] = torch.cat([out[-2], out.pop()])
     return out
@@ -156,6 +174,8 @@ def _train(dataset, config, out, indices, progress, desc, rank, world) -> TrainR
         torch.set_num_threads(config.threads)
     if config.batch_size < world:
         raise ValueError(f'batch size {config.batch_size} < {world} processes')
+    if config.scene_batch < 0:
+        raise ValueError(f'scene_batch {config.scene_batch} < 0')
     rows = _rows(ds, config, indices, rank, world)
     sil = RobotSilhouette.fit(rows.train[0][:2000].numpy().reshape(
         -1, len(ds.views), ds.channels, *rows.train[0].shape[-2:]))
@@ -217,7 +237,8 @@ def _rows(ds, config, indices, rank, world) -> Rows:
         *shape_tensors(ds, va_idx), scene_targets(ds, va_idx)))
     return Rows(tr_idx, va_idx, to_tensors(ds, tr_idx, maxp, as_uint8=True),
                 tuple(t[vs] for t in val),
-                (*shape_tensors(ds, tr_idx), scene_targets(ds, tr_idx)), val_shape)
+                (*shape_tensors(ds, tr_idx), scene_targets(ds, tr_idx)), val_shape,
+                np.asarray(ds.scene)[np.sort(tr_idx)])
 
 
 def _network(ds, config, rows, sil):
@@ -324,7 +345,8 @@ def _fit(net, rows, objective, config, lr, rank, world, progress, desc) -> dict:
                dynamic_ncols=True)
     run_loss, run_n = 0.0, 0
     while True:
-        for gb in _batches(len(xt), config.batch_size, world, gen):
+        for gb in (_batches(len(xt), config.scene_batch, world, gen, rows.train_scene)
+                   if config.scene_batch else _batches(len(xt), config.batch_size, world, gen)):
             b = gb[rank * len(gb) // world:(rank + 1) * len(gb) // world]
             net.train()
             loss, _ = objective(model, to_float(xt[b]), pt[b], to_float(tt[b]),

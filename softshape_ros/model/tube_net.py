@@ -79,6 +79,20 @@ def mlp(cin: int, hidden: int, cout: int, zero_last: bool = True) -> nn.Sequenti
     return net
 
 
+def per_scene(fn, image: torch.Tensor) -> tuple:
+    """
+    Return ``fn(image)`` (a tuple of B x ... tensors), run once per distinct rest image.
+
+    Rows of one placement share their rest images, and what is made of those alone (the
+    scene code, the background) is the same for each: a batch of whole placements
+    (``TrainConfig.scene_batch``) pays for the placements, not the rows.
+    """
+    unique, inverse = torch.unique(image.flatten(1), dim=0, return_inverse=True)
+    if len(unique) == len(image):
+        return tuple(fn(image))
+    return tuple(t[inverse] for t in fn(unique.view(-1, *image.shape[1:])))
+
+
 class SceneEncoder(nn.Module):
     """
     Rest images -> a scene code (B x code) and what the code says of the object (B x 17).
@@ -346,8 +360,11 @@ class TubeNet(nn.Module):
         return c[1]
 
     def _scene_parts(self, image: torch.Tensor) -> SceneParts:
+        return SceneParts(*per_scene(self._one_scene_parts, image))
+
+    def _one_scene_parts(self, image: torch.Tensor) -> tuple:
         code, described = self.keypoints.scene(image)
-        return SceneParts(code, described, self.background(image, self.keypoints.rest()))
+        return code, described, self.background(image, self.keypoints.rest())
 
     def render(self, keypoints, image, background, cond):
         """Compose the tube over ``background``: (image, alpha, coverage, visibility logits)."""
@@ -373,7 +390,7 @@ class TubeNet(nn.Module):
         V x K x 4, the shape record) also draws the composite from the true keypoints.
         """
         if parts == 'keypoints':
-            code, described = self.keypoints.scene(image)
+            code, described = per_scene(self.keypoints.scene, image)
             return (*self.keypoints(code, pressure)[:2], described)
         scene = self.scene_parts(image)
         kp, free, cond = self.keypoints(scene.code, pressure)
