@@ -243,11 +243,10 @@ def test_scene_batches_hold_whole_placements_and_encode_each_once(simulated, mon
                         lambda self, image: seen.append(len(image)) or forward(self, image))
     distinct = len(set(np.asarray(ds.scene)[rows].tolist()))
     assert distinct < len(rows)
-    with torch.no_grad():
-        kp = net(x, p, parts='keypoints')[0]
-        one = torch.cat([net(x[i:i + 1], p[i:i + 1], parts='keypoints')[0]
-                         for i in range(len(rows))])
-        image = net(x, p)
+    kp = net(x, p, parts='keypoints')[0].detach()      # training runs with gradients
+    one = torch.cat([net(x[i:i + 1], p[i:i + 1], parts='keypoints')[0].detach()
+                     for i in range(len(rows))])
+    image = net(x, p)
     assert seen[0] == distinct and torch.allclose(kp, one, atol=1e-5)
     assert seen[-1] == distinct and image.shape == x.shape
     # A keypoint phase in whole placements trains, and the checkpoint records how.

@@ -87,6 +87,8 @@ def per_scene(fn, image: torch.Tensor) -> tuple:
     scene code, the background) is the same for each: a batch of whole placements
     (``TrainConfig.scene_batch``) pays for the placements, not the rows.
     """
+    if not torch.is_grad_enabled() or torch.compiler.is_compiling():   # inference, export
+        return tuple(fn(image))
     unique, inverse = torch.unique(image.flatten(1), dim=0, return_inverse=True)
     if len(unique) == len(image):
         return tuple(fn(image))
