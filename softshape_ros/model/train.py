@@ -345,8 +345,8 @@ def _fit(net, rows, objective, config, lr, rank, world, progress, desc) -> dict:
                dynamic_ncols=True)
     run_loss, run_n = 0.0, 0
     while True:
-        for gb in (_batches(len(xt), config.scene_batch, world, gen, rows.train_scene)
-                   if config.scene_batch else _batches(len(xt), config.batch_size, world, gen)):
+        for gb in _batches(len(xt), config.scene_batch or config.batch_size, world, gen,
+                           rows.train_scene if config.scene_batch else None):
             b = gb[rank * len(gb) // world:(rank + 1) * len(gb) // world]
             net.train()
             loss, _ = objective(model, to_float(xt[b]), pt[b], to_float(tt[b]),
