@@ -254,6 +254,13 @@ def test_scene_batches_hold_whole_placements_and_encode_each_once(simulated, mon
                       eval_every=20, patience=100, seed=0, threads=1, split='scene')
     res = train(ds, cfg, progress=False)
     assert res.config['training']['scene_batch'] == 4
+    # It counts the rows it trained on (pretrain's samples/s): replay its seeded batches.
+    tr = np.setdiff1d(np.arange(len(ds)), res.config['dataset']['val_rows'])
+    gen, sizes = torch.Generator().manual_seed(0), []
+    while len(sizes) < 40:
+        sizes += [len(b) for b in train_mod._batches(len(tr), 4, 1, gen,
+                                                     np.asarray(ds.scene)[tr])]
+    assert res.rows_seen == sum(sizes[:40]) and len(set(sizes)) > 1
     assert res.history[-1]['val_loss'] < res.history[0]['val_loss']
     with pytest.raises(ValueError, match='scene_batch'):
         train(ds, TrainConfig(arch='tube', scene_batch=-1), progress=False)

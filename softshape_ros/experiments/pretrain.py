@@ -94,18 +94,18 @@ def pretrain(settings: PretrainSettings, out, work, progress: bool = True) -> di
                       max_steps=settings.max_steps, eval_every=settings.eval_every,
                       patience=settings.patience, threads=settings.threads)
     t0 = time.perf_counter()
-    steps = 0
+    steps = seen = 0
     if settings.keypoint_steps:
         first = Path(work) / f'{settings.arch}_keypoints'
         res = train(ds, replace(cfg, loss='keypoints', max_steps=settings.keypoint_steps,
                                 scene_batch=settings.keypoint_scene_batch),
                     out=first, progress=progress, desc='pretrain keypoints')
-        cfg, steps = replace(cfg, init=str(first)), res.steps
+        cfg, steps, seen = replace(cfg, init=str(first)), res.steps, res.rows_seen
     res = train(ds, cfg, out=out, progress=progress, desc='pretrain')
     secs = time.perf_counter() - t0
     return {'checkpoint': str(out), 'dataset': str(ds.path), 'samples': len(ds),
             'keypoint_steps': steps, 'steps': res.steps,
             'val_rmse_255': res.val_rmse_255, 'copy_val_rmse_255': res.copy_val_rmse_255,
             'train_seconds': round(secs),
-            'train_samples_per_s': round((steps + res.steps) * settings.batch_size / secs, 1),
+            'train_samples_per_s': round((seen + res.rows_seen) / secs, 1),
             'settings': asdict(settings)}

@@ -85,6 +85,7 @@ class TrainResult:
     best_val_mse: float | None      # None: a keypoint-only objective (nothing drawn)
     copy_val_mse: float
     steps: int
+    rows_seen: int = 0              # training rows over all steps (placement batches vary)
 
     @property
     def val_rmse_255(self) -> float | None:
@@ -220,7 +221,7 @@ def _train(dataset, config, out, indices, progress, desc, rank, world) -> TrainR
     if world > 1:
         dist.barrier()
     return TrainResult(net, cfg, fit['history'], fit['best_mse'], fit['copy_mse'],
-                       fit['steps'])
+                       fit['steps'], fit['rows_seen'])
 
 
 def _rows(ds, config, indices, rank, world) -> Rows:
@@ -343,7 +344,7 @@ def _fit(net, rows, objective, config, lr, rank, world, progress, desc) -> dict:
         history.append({'step': 0, 'train_loss': None, 'val_loss': best, 'val_mse': best_mse})
     bar = tqdm(total=config.max_steps, desc=desc, disable=not progress, leave=False,
                dynamic_ncols=True)
-    run_loss, run_n = 0.0, 0
+    run_loss, run_n, seen = 0.0, 0, 0
     while True:
         for gb in _batches(len(xt), config.scene_batch or config.batch_size, world, gen,
                            rows.train_scene if config.scene_batch else None):
@@ -355,7 +356,7 @@ def _fit(net, rows, objective, config, lr, rank, world, progress, desc) -> dict:
             loss.backward()
             opt.step()
             sched.step()
-            step += 1
+            step, seen = step + 1, seen + len(gb)
             run_loss, run_n = run_loss + float(loss.detach()), run_n + 1
             bar.update(1)
             if step % config.eval_every and step < config.max_steps:
@@ -379,4 +380,5 @@ def _fit(net, rows, objective, config, lr, rank, world, progress, desc) -> dict:
                                             and step >= config.min_steps):
                 bar.close()
                 return {'best_state': best_state, 'best_loss': best, 'best_mse': best_mse,
-                        'copy_mse': copy_mse, 'steps': step, 'history': history}
+                        'copy_mse': copy_mse, 'steps': step, 'rows_seen': seen,
+                        'history': history}
