@@ -55,10 +55,10 @@ class PretrainSettings:
 
 #: The tube model's defaults: it needs many placements to learn to see the object
 #: (docs/model.md: 1000 samples over 100 placements overfit them), and data is cheap.
-#: (``--keypoint-scene-batch 16 --keypoint-steps 10000``: whole placements a batch, each
-#: encoded once; measured in docs/model.md, not yet the shipped checkpoint's command.)
-TUBE = {'samples': 20000, 'scenes': 2000, 'keypoint_steps': 4000, 'keypoint_scene_batch': 0,
-        'max_steps': 800, 'eval_every': 400, 'patience': 100}
+#: The keypoint phase takes 16 whole placements a batch, each encoded once, so its 10000
+#: steps cost less than 4000 row batches did and see each placement more often.
+TUBE = {'samples': 20000, 'scenes': 2000, 'keypoint_steps': 10000, 'keypoint_scene_batch': 16,
+        'max_steps': 1200, 'eval_every': 400, 'patience': 100}
 
 
 def simulated_dataset(settings: PretrainSettings, work, progress: bool = True):
