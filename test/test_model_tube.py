@@ -376,3 +376,29 @@ def test_tube_trains_under_torchrun_with_two_processes(simulated, tmp_path):
     assert len(lines) == 1 and json.loads(lines[0])['steps'] == 4
     _, cfg = load_checkpoint(tmp_path / 'ck')
     assert cfg['training']['world_size'] == 2 and cfg['training']['loss'] == 'tube'
+
+
+def test_reproduce_trains_tube_in_its_two_phases_beside_paper_and_ours(tmp_path):
+    from softshape_ros.model.reproduce import ReproConfig, reproduce
+    ds, _ = generate(CFG, make_plan(CFG, 60, 6, seed=7), tmp_path / 'ds', ['main', 'side'],
+                     workers=1, progress=False)
+    cfg = ReproConfig(sizes=[24], max_steps=2, eval_every=1, patience=5, threads=1,
+                      tube_keypoint_steps=3, tube_eval_every=1)
+    out, work = tmp_path / 'repro', tmp_path / 'work'
+    with pytest.raises(ValueError, match='unknown architecture tub'):
+        reproduce(ds.path, out, cfg, work=work, archs=['tub'])
+    table = reproduce(ds.path, out, cfg, work=work, splits=['scene'], views=['stereo'],
+                      archs=['paper', 'ours', 'tube'])
+    run = json.loads((out / 'runs' / 'scene_stereo_tube_24.json').read_text())
+    assert run['keypoint_steps'] == 3 and run['steps'] == 2 and run['test_rows'] == 10
+    first, _ = load_checkpoint(work / 'scene_stereo_tube_24_keypoints')
+    second, cfg_loaded = load_checkpoint(work / 'scene_stereo_tube_24')
+    # The second phase started from the first, at the tube's own batch size.
+    assert cfg_loaded['training']['init_from'] == str(work / 'scene_stereo_tube_24_keypoints')
+    assert cfg_loaded['training']['batch_size'] == 64 and cfg_loaded['training']['loss'] == 'tube'
+    tube_part = table.split('`tube` on the same test rows (scene split)')[1]
+    assert '| 24 | stereo |' in tube_part and 'missing run' not in tube_part
+    row = next(r for r in tube_part.splitlines() if r.startswith('| 24 | stereo |'))
+    cells = [c.strip() for c in row.strip('|').split('|')]
+    assert float(cells[4]) == pytest.approx(run['model']['rmse'], abs=0.01)
+    assert (out / 'panels_stereo.png').stat().st_size > 100

@@ -150,7 +150,8 @@ def register(sub) -> None:
     p.add_argument('--splits', default='random,scene',
                    help='train only these splits here (the table uses all cached runs)')
     p.add_argument('--views', default='mono,stereo', help='train only these views here')
-    p.add_argument('--archs', default='paper,ours', help='train only these networks here')
+    p.add_argument('--archs', default='paper,ours',
+                   help='train only these networks here (paper, ours, tube)')
     p.add_argument('--no-fig4c', action='store_true', help='skip the object-distance sweep')
     p.set_defaults(func=_reproduce)
 

@@ -14,11 +14,11 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from softshape_ros.config import load_rig_config
-from softshape_ros.model.train import TrainConfig, train
+from softshape_ros.model.train import TrainConfig, train_in_phases
 from softshape_ros.sim.generate import SPARSE_SHARE, TOWARD_SHARE
 
 
@@ -94,14 +94,11 @@ def pretrain(settings: PretrainSettings, out, work, progress: bool = True) -> di
                       max_steps=settings.max_steps, eval_every=settings.eval_every,
                       patience=settings.patience, threads=settings.threads)
     t0 = time.perf_counter()
-    steps = seen = 0
-    if settings.keypoint_steps:
-        first = Path(work) / f'{settings.arch}_keypoints'
-        res = train(ds, replace(cfg, loss='keypoints', max_steps=settings.keypoint_steps,
-                                scene_batch=settings.keypoint_scene_batch),
-                    out=first, progress=progress, desc='pretrain keypoints')
-        cfg, steps, seen = replace(cfg, init=str(first)), res.steps, res.rows_seen
-    res = train(ds, cfg, out=out, progress=progress, desc='pretrain')
+    first, res = train_in_phases(ds, cfg, settings.keypoint_steps,
+                                 Path(work) / f'{settings.arch}_keypoints', out=out,
+                                 keypoint_scene_batch=settings.keypoint_scene_batch,
+                                 progress=progress, desc='pretrain')
+    steps, seen = (first.steps, first.rows_seen) if first else (0, 0)
     secs = time.perf_counter() - t0
     return {'checkpoint': str(out), 'dataset': str(ds.path), 'samples': len(ds),
             'keypoint_steps': steps, 'steps': res.steps,

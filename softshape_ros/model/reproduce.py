@@ -5,7 +5,9 @@ One stereo dataset; mono runs use its first view (``main``). A test set is held 
 per split (random rows, or whole scenes) and never trained on; training sets of 100, 200,
 500, 1000 rows are nested draws from the rest, each split 80/20 into train/validation as in
 the paper. Every run's metrics are cached as JSON beside the table, so an interrupted
-reproduction resumes where it stopped.
+reproduction resumes where it stopped. ``tube`` (our structured model) joins the grid when
+asked for (``archs``): its two-phase recipe (:func:`~softshape_ros.model.train.train_in_phases`)
+costs several times a ``paper`` or ``ours`` run, so the default grid is the paper's pair.
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ import hashlib
 import json
 import tempfile
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import matplotlib
@@ -27,12 +29,14 @@ from softshape_ros.model.data import no_contact_why, split_indices, touching_fla
 from softshape_ros.model.evaluate import predict_rows, prediction_panels
 from softshape_ros.model.metrics import RobotSilhouette, evaluate_arrays
 from softshape_ros.model.predictor import Predictor
-from softshape_ros.model.train import TrainConfig, code_stamp, train
+from softshape_ros.model.train import TrainConfig, code_stamp, train, train_in_phases
 
 matplotlib.use('Agg')
 import matplotlib.pyplot as plt  # noqa: E402
 
-ARCHS = ('paper', 'ours')
+ARCHS = ('paper', 'ours', 'tube')
+DEFAULT_ARCHS = ('paper', 'ours')   # what is trained unless asked
+COLOURS = {'paper': 'tab:orange', 'ours': 'tab:blue', 'tube': 'tab:green'}
 VIEWS = ('mono', 'stereo')
 SPLITS = ('random', 'scene')
 
@@ -48,6 +52,13 @@ class ReproConfig:
     eval_every: int = 10
     patience: int = 8
     threads: int = 0
+    # tube: the keypoint phase (whole placements a batch, nothing drawn; skipped on data
+    # without a shape record), then the full loss for max_steps at its own batch size, both
+    # validated every tube_eval_every steps (a validation draws every validation row)
+    tube_keypoint_steps: int = 3000
+    tube_scene_batch: int = 16
+    tube_batch_size: int = 64
+    tube_eval_every: int = 50
 
 
 def select_views(ds: Dataset, n: int) -> Dataset:
@@ -77,20 +88,29 @@ def _key(split, views, arch, size) -> str:
     return f'{split}_{views}_{arch}_{size}'
 
 
-def _fit_and_score(ds, rows, test, tc, ckpt, sil, desc) -> dict:
+def _fit_and_score(ds, rows, test, tc, ckpt, sil, desc, cfg: ReproConfig) -> dict:
     t0 = time.perf_counter()
-    res = train(ds, tc, out=ckpt, indices=rows, desc=desc)
+    first = None
+    if tc.arch == 'tube':
+        kp = cfg.tube_keypoint_steps if getattr(ds, 'shape', None) is not None else 0
+        first, res = train_in_phases(
+            ds, replace(tc, batch_size=cfg.tube_batch_size, eval_every=cfg.tube_eval_every),
+            kp, ckpt.with_name(ckpt.name + '_keypoints'), out=ckpt,
+            keypoint_scene_batch=cfg.tube_scene_batch, indices=rows, desc=desc)
+    else:
+        res = train(ds, tc, out=ckpt, indices=rows, desc=desc)
     secs = time.perf_counter() - t0
     pred = Predictor.from_checkpoint(ckpt)
     p = predict_rows(pred, ds, test)
     m = evaluate_arrays(np.asarray(ds.initial[test]), np.asarray(ds.target[test]), p, sil,
                         touching_flags(ds, test), no_contact_why(ds))
-    m.update(train_seconds=secs, steps=res.steps, val_rmse=res.val_rmse_255)
+    m.update(train_seconds=secs, steps=res.steps, val_rmse=res.val_rmse_255,
+             keypoint_steps=first.steps if first else 0)
     return m
 
 
 def reproduce(dataset, out, cfg: ReproConfig | None = None, work=None,
-              splits=SPLITS, views=VIEWS, archs=ARCHS) -> str:
+              splits=SPLITS, views=VIEWS, archs=DEFAULT_ARCHS) -> str:
     """
     Run (or resume) the grid; write table.md, results.json and figures to ``out``.
 
@@ -99,6 +119,11 @@ def reproduce(dataset, out, cfg: ReproConfig | None = None, work=None,
     budget.
     """
     cfg = cfg or ReproConfig()
+    for name, given, known in (('split', splits, SPLITS), ('views', views, VIEWS),
+                               ('architecture', archs, ARCHS)):
+        bad = sorted(set(given) - set(known))
+        if bad:
+            raise ValueError(f'unknown {name} {", ".join(bad)} (choose from {", ".join(known)})')
     full = load_dataset(dataset)
     if len(full.views) < 2:
         raise ValueError(f'{full.path}: reproduce needs a stereo dataset (mono = its 1st view)')
@@ -133,7 +158,7 @@ def reproduce(dataset, out, cfg: ReproConfig | None = None, work=None,
                          eval_every=cfg.eval_every, patience=cfg.patience,
                          threads=cfg.threads)
         m = _fit_and_score(sets[view], train_rows[size], test, tc, work / key,
-                           sils[view], key)
+                           sils[view], key, cfg)
         m.update(stamp=stamp, split=split, views=view, arch=arch, size=size,
                  test_rows=int(len(test)), checkpoint=str(work / key))
         cache.write_text(json.dumps(m, indent=2))
@@ -193,9 +218,38 @@ def write_table(results, cfg, path, ds) -> str:
                     f'| {_num(om.get("ssim"), 3)} | {_num(100 * om.get("intrusion", np.nan), 2)} '
                     f'| {o["train_seconds"]:.0f} |')
         lines.append('')
+        lines += _tube_rows(results, cfg, split)
     text = '\n'.join(lines) + '\n'
     Path(path).write_text(text)
     return text
+
+
+def _tube_rows(results, cfg, split) -> list:
+    """The tube model's rows of one split (none if it was not run), beside paper's RMSE."""
+    keys = [(size, views) for size in cfg.sizes for views in VIEWS
+            if _key(split, views, 'tube', size) in results]
+    if not keys:
+        return []
+    lines = [f'`tube` on the same test rows ({split} split):', '',
+             '| size | views | copy | paper | tube | gain | tube RMSE changed | '
+             'yellow % tube / copy | tube IoU all / touching | tube tip px all / touching '
+             '| tube SSIM | tube intrusion % | tube train s |',
+             '|---|---|---|---|---|---|---|---|---|---|---|---|---|']
+    for size, views in keys:
+        t = results[_key(split, views, 'tube', size)]
+        p = results.get(_key(split, views, 'paper', size))
+        tm, touch = t['model'], t.get('touching', {}).get('model', {})
+        paper = p['model']['rmse'] if p else np.nan
+        lines.append(
+            f'| {size} | {views} | {t["copy"]["rmse"]:.2f} | {_num(paper, 2)} '
+            f'| {tm["rmse"]:.2f} | {_num(100 * (1 - tm["rmse"] / paper), 0)}% '
+            f'| {tm["rmse_changed"]:.1f} | {100 * tm["yellow_fraction"]:.2f} / '
+            f'{100 * t["copy"]["yellow_fraction"]:.2f} '
+            f'| {tm["silhouette_iou"]:.3f} / {_num(touch.get("silhouette_iou"), 3)} '
+            f'| {tm["tip_error_px"]:.2f} / {_num(touch.get("tip_error_px"), 2)} '
+            f'| {_num(tm.get("ssim"), 3)} | {_num(100 * tm.get("intrusion", np.nan), 2)} '
+            f'| {t["train_seconds"]:.0f} |')
+    return lines + ['']
 
 
 def _num(v, nd) -> str:
@@ -207,7 +261,7 @@ def rmse_figure(results, cfg, path) -> None:
     fig, axes = plt.subplots(1, 2, figsize=(10, 4), sharey=True)
     for ax, split in zip(axes, SPLITS):
         for views, ls in zip(VIEWS, ('--', '-')):
-            for arch, colour in zip(ARCHS, ('tab:orange', 'tab:blue')):
+            for arch, colour in COLOURS.items():
                 pts = [(s, results[_key(split, views, arch, s)]['model']['rmse'])
                        for s in cfg.sizes if _key(split, views, arch, s) in results]
                 if pts:
@@ -232,18 +286,19 @@ def rmse_figure(results, cfg, path) -> None:
 
 
 def panels_figure(ds, rows, work, size, views, split, path) -> None:
-    """Fig. 4(a)/(b): test-set predictions of paper and ours at the largest size."""
+    """Fig. 4(a)/(b): test-set predictions of paper, ours (and tube, if run), largest size."""
     initial, target = np.asarray(ds.initial[rows]), np.asarray(ds.target[rows])
+    cks = {a: work / _key(split, views, a, size) for a in ARCHS}
+    archs = [a for a in ARCHS if (cks[a] / 'config.json').exists()]
+    if not set(DEFAULT_ARCHS) <= set(archs):
+        return
     preds, labels = [], []
-    for arch in ARCHS:
-        ck = work / _key(split, views, arch, size)
-        if not (ck / 'config.json').exists():
-            return
-        preds.append(predict_rows(Predictor.from_checkpoint(ck), ds, rows))
+    for arch in archs:
+        preds.append(predict_rows(Predictor.from_checkpoint(cks[arch]), ds, rows))
         labels += [f'{arch} #{r}' for r in rows]
-    n = len(rows)
+    n, k = len(rows), len(archs)
     where = 'unseen scenes' if split == 'scene' else 'held-out rows'
-    prediction_panels(np.concatenate([initial] * 2), np.concatenate([target] * 2),
+    prediction_panels(np.concatenate([initial] * k), np.concatenate([target] * k),
                       np.concatenate(preds), list(ds.views), path,
                       title=f'{views}, {size} training samples, {where} '
-                            f'(top {n} rows: paper, bottom {n}: ours)', row_labels=labels)
+                            f'({n} rows each: {", ".join(archs)})', row_labels=labels)

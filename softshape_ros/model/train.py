@@ -15,7 +15,7 @@ import copy
 import hashlib
 import math
 import os
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -167,6 +167,27 @@ def train(dataset, config: TrainConfig, out=None, indices=None, progress: bool =
     finally:
         if started:
             dist.destroy_process_group()
+
+
+def train_in_phases(dataset, config: TrainConfig, keypoint_steps: int, first, out=None,
+                    keypoint_scene_batch: int = 0, indices=None, progress: bool = True,
+                    desc: str = 'train') -> tuple[TrainResult | None, TrainResult]:
+    """
+    The tube model's recipe: ``keypoint_steps`` of the keypoint and scene terms, then ``config``.
+
+    The first phase draws nothing (5-6 times faster a step) and is written to ``first``;
+    the second starts from it with ``config``'s loss. ``keypoint_steps`` 0 skips the first.
+
+    Returns:
+        (the first phase's result or None, the second's)
+    """
+    res = None
+    if keypoint_steps:
+        res = train(dataset, replace(config, loss='keypoints', max_steps=keypoint_steps,
+                                     scene_batch=keypoint_scene_batch),
+                    out=first, indices=indices, progress=progress, desc=f'{desc} keypoints')
+        config = replace(config, init=str(first))
+    return res, train(dataset, config, out=out, indices=indices, progress=progress, desc=desc)
 
 
 def _train(dataset, config, out, indices, progress, desc, rank, world) -> TrainResult:
