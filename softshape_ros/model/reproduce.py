@@ -225,7 +225,7 @@ def write_table(results, cfg, path, ds) -> str:
 
 
 def _tube_rows(results, cfg, split) -> list:
-    """The tube model's rows of one split (none if it was not run), beside paper's RMSE."""
+    """Tabulate the tube model's rows of one split (none if not run), beside paper's RMSE."""
     keys = [(size, views) for size in cfg.sizes for views in VIEWS
             if _key(split, views, 'tube', size) in results]
     if not keys:

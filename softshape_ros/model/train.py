@@ -173,13 +173,11 @@ def train_in_phases(dataset, config: TrainConfig, keypoint_steps: int, first, ou
                     keypoint_scene_batch: int = 0, indices=None, progress: bool = True,
                     desc: str = 'train') -> tuple[TrainResult | None, TrainResult]:
     """
-    The tube model's recipe: ``keypoint_steps`` of the keypoint and scene terms, then ``config``.
+    Train the tube model's recipe: ``keypoint_steps`` of keypoint and scene terms, then ``config``.
 
     The first phase draws nothing (5-6 times faster a step) and is written to ``first``;
     the second starts from it with ``config``'s loss. ``keypoint_steps`` 0 skips the first.
-
-    Returns:
-        (the first phase's result or None, the second's)
+    Returns the first phase's result (None when skipped) and the second's.
     """
     res = None
     if keypoint_steps:
