@@ -54,10 +54,10 @@ class PretrainSettings:
 
 
 #: The tube model's defaults: it needs many placements to learn to see the object
-#: (docs/model.md: 1000 samples over 100 placements overfit them), and data is cheap.
-#: The keypoint phase takes 16 whole placements a batch, each encoded once, so its 10000
-#: steps cost less than 4000 row batches did and see each placement more often.
-TUBE = {'samples': 20000, 'scenes': 2000, 'keypoint_steps': 10000, 'keypoint_scene_batch': 16,
+#: (docs/model.md: 1000 samples over 100 placements overfit them; 2000 placements for
+#: 20 000 samples still leave a gap between seen and unseen ones, 10 000 narrow it), and
+#: data is cheap. The keypoint phase takes 16 whole placements a batch, each encoded once.
+TUBE = {'samples': 20000, 'scenes': 10000, 'keypoint_steps': 10000, 'keypoint_scene_batch': 16,
         'max_steps': 1200, 'eval_every': 400, 'patience': 100}
 
 
