@@ -39,6 +39,31 @@ def pixel_grid(size: int, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tenso
     return xs.reshape(-1), ys.reshape(-1)
 
 
+def nearest_segment(keypoints: torch.Tensor, size: int) -> torch.Tensor:
+    """
+    Return B x V x P: per pixel, the segment whose capsule's outline is nearest.
+
+    The only pass over every pixel x segment pair, so it runs without autograd and in
+    place (a minimum's gradient reaches only the segment it picked anyway): what made the
+    tube model's training step slow was this pass's B x V x (K-1) x P temporaries kept for
+    the backward pass (docs/model.md, "A faster renderer").
+    """
+    with torch.no_grad():
+        qx, qy = pixel_grid(size, keypoints)
+        kp = keypoints.detach()
+        a = kp[:, :, :-1, None, :]                                   # B x V x S x 1 x 4
+        e = kp[:, :, 1:, None, :] - a                                # S = K - 1 segments
+        ex, ey = e[..., X], e[..., Y]
+        exy2 = (ex ** 2 + ey ** 2).clamp_min(1e-6)                   # B x V x S x 1
+        px, py = qx - a[..., X], qy - a[..., Y]                      # B x V x S x P
+        t = (px * ex).addcmul_(py, ey).div_(exy2).clamp_(0.0, 1.0)
+        px.addcmul_(t, ex, value=-1.0)                               # px, py: offsets from
+        py.addcmul_(t, ey, value=-1.0)                               # the nearest axis point
+        sd = px.mul_(px).addcmul_(py, py).add_(1e-6).sqrt_()
+        sd.sub_(a[..., R]).addcmul_(t, e[..., R], value=-1.0)
+        return sd.min(dim=2).indices
+
+
 def tube_field(keypoints: torch.Tensor, size: int) -> TubeField:
     """
     Return the signed distance to the tube's outline and the tube's normal at each pixel.
@@ -48,27 +73,21 @@ def tube_field(keypoints: torch.Tensor, size: int) -> TubeField:
     in-image offset ``rel`` = distance / radius along unit direction ``u`` from the axis,
     ``n = rel u + sqrt(1 - rel^2) w``, ``w`` the unit vector across the axis facing the
     camera, ``(tz e, -|t_xy|)`` for a segment of unit 3-D direction ``t`` (``e`` its unit
-    image direction), ``(0, 0, -1)`` for a sphere. Only the signed distance is computed
-    for every pixel x segment pair; the rest for the nearest segment.
+    image direction), ``(0, 0, -1)`` for a sphere. The nearest segment is found without
+    gradients (:func:`nearest_segment`); everything else, with gradients, for it alone.
     """
     qx, qy = pixel_grid(size, keypoints)                             # P
-    a, b = keypoints[:, :, :-1, None, :], keypoints[:, :, 1:, None, :]    # B x V x S x 1 x 4
-    e = b - a                                                        # S = K - 1 segments
-    exy2 = (e[..., X] ** 2 + e[..., Y] ** 2).clamp_min(1e-6)          # B x V x S x 1
-    px, py = qx - a[..., X], qy - a[..., Y]                          # B x V x S x P
-    s = (px * e[..., X] + py * e[..., Y]) / exy2
+    k = nearest_segment(keypoints, size)                             # B x V x P
+    idx = k[..., None].expand(*k.shape, keypoints.shape[-1])
+    a = torch.gather(keypoints, 2, idx)                              # B x V x P x 4
+    e = torch.gather(keypoints, 2, idx + 1) - a
+    ex, ey, er, ez = e.unbind(-1)                                    # B x V x P each
+    ar, az = a[..., R], a[..., Z]
+    exy2 = (ex ** 2 + ey ** 2).clamp_min(1e-6)
+    px, py = qx - a[..., X], qy - a[..., Y]
+    s = (px * ex + py * ey) / exy2
     t = s.clamp(0.0, 1.0)
-    dx, dy = px - t * e[..., X], py - t * e[..., Y]
-    sd, k = (torch.sqrt(dx * dx + dy * dy + 1e-6) - a[..., R] - t * e[..., R]).min(
-        dim=2, keepdim=True)                                         # B x V x 1 x P
-
-    def pick(x):                                                     # nearest segment's
-        return torch.gather(x.expand(-1, -1, -1, k.shape[-1]), 2, k).squeeze(2)
-
-    s, dx, dy = pick(s), pick(dx), pick(dy)                          # B x V x P
-    ex, ey, ez, er, ar, az, exy2 = (pick(x) for x in (
-        e[..., X], e[..., Y], e[..., Z], e[..., R], a[..., R], a[..., Z], exy2))
-    t = s.clamp(0.0, 1.0)
+    dx, dy = px - t * ex, py - t * ey
     d = torch.sqrt(dx * dx + dy * dy + 1e-6)
     rel = (d / (ar + t * er)).clamp(max=1.0)
     face = torch.sqrt((1.0 - rel * rel).clamp_min(0.0) + 1e-6)
@@ -77,7 +96,7 @@ def tube_field(keypoints: torch.Tensor, size: int) -> TubeField:
     side = ((s > 0.0) & (s < 1.0)).to(keypoints.dtype)               # else a rounded end
     wx, wy = side * (ez / n3) * (ex / exy), side * (ez / n3) * (ey / exy)
     wz = -(side * exy / n3 + (1.0 - side))
-    return TubeField(sd.squeeze(2), rel * dx / d + face * wx, rel * dy / d + face * wy,
+    return TubeField(d - ar - t * er, rel * dx / d + face * wx, rel * dy / d + face * wy,
                      face * wz, az + t * ez)
 
 

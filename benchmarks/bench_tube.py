@@ -1,0 +1,81 @@
+"""
+The tube model: its renderer, one full-loss training step and its predictions, one thread.
+
+What the 20 000-sample pre-training and ``softshape evaluate`` spend their time on (issue
+18: train to early stopping in <= 30 min). Data: 128 stereo samples of the default
+contact-rich plan over 8 placements, simulated here (shape record, contact record and
+placements, as training sees them); network: the shipped checkpoint.
+"""
+
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from softshape_ros.config import load_rig_config
+from softshape_ros.demo.pipeline import PRETRAINED
+from softshape_ros.model import Predictor
+from softshape_ros.model.data import scene_targets, shape_tensors, to_tensors
+from softshape_ros.model.losses import TubeLoss
+from softshape_ros.model.tube_render import tube_field
+from softshape_ros.sim.generate import generate, make_plan
+
+BATCH = 64
+
+
+def _median_s(fn, n: int, warm: int = 2) -> float:
+    for _ in range(warm):
+        fn()
+    ts = []
+    for _ in range(n):
+        t0 = time.perf_counter()
+        fn()
+        ts.append(time.perf_counter() - t0)
+    return float(np.median(ts))
+
+
+def run() -> dict:
+    restore = torch.get_num_threads()
+    torch.set_num_threads(1)
+    cfg = load_rig_config()
+    with tempfile.TemporaryDirectory() as tmp:
+        ds, _ = generate(cfg, make_plan(cfg, 128, 8, seed=11), Path(tmp) / 'ds',
+                         ['main', 'side'], workers=1, progress=False)
+        pred = Predictor.from_checkpoint(PRETRAINED)
+        net = pred.model
+        rows = np.arange(BATCH)
+        x, t, p = to_tensors(ds, rows, ds.max_pressure_pa)
+        truth, free = shape_tensors(ds, rows)
+        scene = scene_targets(ds, rows)
+        out = {'batch': BATCH, 'threads': 1}
+
+        def render():
+            kp = truth.clone().requires_grad_(True)
+            f = tube_field(kp, 64)
+            (f.sd.sum() + f.nz.sum() + f.depth.sum()).backward()
+        out['render_fwd_bwd_ms'] = round(1000 * _median_s(render, 10), 1)
+
+        objective = TubeLoss(threshold=pred.config['silhouette']['threshold'] / 255, channels=1)
+        opt = torch.optim.Adam(net.parameters(), lr=1e-5)
+
+        def step():
+            net.train()
+            loss, _ = objective(net, x, p, t, truth, free, scene)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+        s = _median_s(step, 6)
+        out['full_loss_step_s'] = round(s, 3)
+        out['full_loss_rows_per_s'] = round(BATCH / s, 1)
+        net.eval()
+        initial = np.asarray(ds.initial[:BATCH])
+        pressures = list(np.asarray(ds.pressure[:BATCH]))
+        with torch.no_grad():
+            out['predict_batch64_ms'] = round(1000 * _median_s(
+                lambda: pred.predict_batch(initial, pressures), 10), 1)
+            out['predict_batch1_ms'] = round(1000 * _median_s(
+                lambda: pred.predict(initial[0], pressures[0]), 50, warm=5), 2)
+    torch.set_num_threads(restore)
+    return out
