@@ -8,12 +8,12 @@ placements, as training sees them); network: the shipped checkpoint.
 """
 
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from benchmarks.bench_model import _latency
 from softshape_ros.config import load_rig_config
 from softshape_ros.demo.pipeline import PRETRAINED
 from softshape_ros.model import Predictor
@@ -26,14 +26,8 @@ BATCH = 64
 
 
 def _median_s(fn, n: int, warm: int = 2) -> float:
-    for _ in range(warm):
-        fn()
-    ts = []
-    for _ in range(n):
-        t0 = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t0)
-    return float(np.median(ts))
+    """Return the median seconds of ``fn`` over ``n`` calls after ``warm``."""
+    return _latency(fn, n=n, warm=warm)['median_ms'] / 1000
 
 
 def run() -> dict:

@@ -69,7 +69,7 @@ def test_gradients_reach_every_keypoint():
 
 
 def _all_pairs_field(kp, size):
-    """The renderer as every pixel x segment pair with gradients: the reference it must equal."""
+    """Return (sd, depth) from every pixel x segment pair with gradients: the reference."""
     r = torch.arange(size, dtype=kp.dtype)
     qy, qx = (g.reshape(-1) for g in torch.meshgrid(r, r, indexing='ij'))
     a, b = kp[:, :, :-1, None, :], kp[:, :, 1:, None, :]
