@@ -39,9 +39,9 @@ def pixel_grid(size: int, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tenso
     return xs.reshape(-1), ys.reshape(-1)
 
 
-def nearest_segment(keypoints: torch.Tensor, size: int) -> torch.Tensor:
+def nearest_segment(keypoints: torch.Tensor, qx: torch.Tensor, qy: torch.Tensor) -> torch.Tensor:
     """
-    Return B x V x P: per pixel, the segment whose capsule's outline is nearest.
+    Return B x V x P: per pixel (``qx``, ``qy``: :func:`pixel_grid`), the nearest capsule.
 
     The only pass over every pixel x segment pair, so it runs without autograd and in
     place (a minimum's gradient reaches only the segment it picked anyway): what made the
@@ -49,7 +49,6 @@ def nearest_segment(keypoints: torch.Tensor, size: int) -> torch.Tensor:
     the backward pass (docs/model.md, "A faster renderer").
     """
     with torch.no_grad():
-        qx, qy = pixel_grid(size, keypoints)
         kp = keypoints.detach()
         a = kp[:, :, :-1, None, :]                                   # B x V x S x 1 x 4
         e = kp[:, :, 1:, None, :] - a                                # S = K - 1 segments
@@ -77,7 +76,7 @@ def tube_field(keypoints: torch.Tensor, size: int) -> TubeField:
     gradients (:func:`nearest_segment`); everything else, with gradients, for it alone.
     """
     qx, qy = pixel_grid(size, keypoints)                             # P
-    k = nearest_segment(keypoints, size)                             # B x V x P
+    k = nearest_segment(keypoints, qx, qy)                           # B x V x P
     idx = k[..., None].expand(*k.shape, keypoints.shape[-1])
     a = torch.gather(keypoints, 2, idx)                              # B x V x P x 4
     e = torch.gather(keypoints, 2, idx + 1) - a
