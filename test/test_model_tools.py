@@ -68,6 +68,9 @@ def test_cli_train_evaluate_export(tmp_path, capsys):
                 '--eval-every', '5', '--threads', '1', '--quiet']) == 0
     summary = json.loads(capsys.readouterr().out)
     assert summary['steps'] <= 20 and summary['val_rmse_255'] > 0
+    with pytest.raises(SystemExit, match='--outline is a tube model option'):
+        cli(['train', '--dataset', str(ds.path), '--out', str(ck), '--arch', 'ours',
+             '--outline'])
     assert cli(['evaluate', '--checkpoint', str(ck), '--dataset', str(ds.path),
                 '--validation', '--out', str(tmp_path / 'ev')]) == 0
     res = json.loads(capsys.readouterr().out)

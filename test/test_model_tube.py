@@ -16,7 +16,7 @@ from softshape_ros.model.data import SCENE_FEATURES, scene_targets, scene_vector
 from softshape_ros.model.metrics import RobotSilhouette
 from softshape_ros.model.train import TrainConfig, train
 from softshape_ros.model.tube_net import KEYPOINTS
-from softshape_ros.model.tube_render import coverage, tube_field
+from softshape_ros.model.tube_render import TubeShader, coverage, tube_field
 from softshape_ros.scene import OBJECT_DIMS, Scene
 from softshape_ros.sim.generate import SHAPE_KEYPOINTS, generate, make_plan
 
@@ -43,6 +43,33 @@ def test_a_known_tube_renders_a_known_disk_and_capsule():
     row = cap.view(64, 64)[25]
     assert [float(v) for v in row[27:38]] == pytest.approx(
         [0.0, 0.5] + [1.0] * 7 + [0.5, 0.0], abs=1e-3)
+
+
+def test_the_learned_outline_draws_the_tube_that_far_out():
+    # TubeNet(outline=True): the shader's per-view offset (px) moves the drawn outline out
+    # from the keypoints' radius; it starts at zero (the plain ramp) and is learnable.
+    shader = TubeShader(2, 1, outline=True).double()
+    kp = tube([[20.0, 30.0, 6.0, 0.0]] * 2).expand(1, 2, 2, 4)
+    field = tube_field(kp, 64)
+    assert torch.equal(shader.coverage(field), coverage(field.sd))
+    with torch.no_grad():
+        shader.outline.copy_(torch.tensor([0.5, -1.0]))
+    cov = shader.coverage(field)
+    disk = cov.detach().view(2, 64, 64)
+    assert float(disk[0].sum()) == pytest.approx(math.pi * 6.5 ** 2, rel=0.02)
+    assert float(disk[1].sum()) == pytest.approx(math.pi * 5.0 ** 2, rel=0.02)
+    # 6 px from the centre: on the keypoints' outline, half covered by the plain ramp,
+    # inside the drawn one 0.5 px further out (and outside the one 1 px further in).
+    plain = coverage(field.sd).view(2, 64, 64)
+    assert float(plain[0, 30, 26]) == pytest.approx(0.5, abs=1e-3)
+    assert float(disk[0, 30, 26]) == pytest.approx(1.0) and float(disk[1, 30, 26]) == 0.0
+    cov[:, 0].sum().backward()
+    # d(area)/d(offset): one per pixel on the ramp, about the outline's length 2 pi (r + 0.5).
+    ramp = int(((disk[0] > 0) & (disk[0] < 1)).sum())
+    assert float(shader.outline.grad[0]) == ramp
+    assert ramp == pytest.approx(2 * math.pi * 6.5, rel=0.15)
+    assert float(shader.outline.grad[1]) == 0.0
+    assert TubeShader(2, 1).outline is None
 
 
 def test_gradients_reach_every_keypoint():
@@ -311,7 +338,7 @@ def test_short_tube_training_beats_copy_on_touching_samples(simulated, tmp_path)
     from softshape_ros.model.metrics import evaluate_arrays
     ds = load_dataset(simulated.path)
     cfg = TrainConfig(arch='tube', batch_size=16, max_steps=200, eval_every=40, patience=100,
-                      seed=0, threads=1, split='scene')
+                      seed=0, threads=1, split='scene', arch_params={'outline': True})
     res = train(ds, cfg, out=tmp_path / 'ck', progress=False)
     val = np.asarray(res.config['dataset']['val_rows'])
     touching = np.asarray(ds.contact.touching)
@@ -320,6 +347,13 @@ def test_short_tube_training_beats_copy_on_touching_samples(simulated, tmp_path)
     assert cfg_loaded['arch'] == 'tube' and cfg_loaded['dataset']['shape_record'] is True
     # Training builds the visibility that reads the scene code, and the checkpoint says so.
     assert cfg_loaded['arch_params']['scene_visibility'] is True and model.scene_visibility
+    # The learned outline asked for (softshape train --outline), moved from its zero start
+    # by the image terms; a fine-tune that asks for another architecture is refused.
+    assert cfg_loaded['arch_params']['outline'] is True
+    assert float(model.shader.outline.abs().min()) > 1e-3, model.shader.outline
+    with pytest.raises(CheckpointError, match='outline'):
+        train(ds, TrainConfig(arch='tube', init=str(tmp_path / 'ck'), max_steps=1,
+                              arch_params={'outline': False}), progress=False)
     pred = predict_rows(Predictor.from_checkpoint(tmp_path / 'ck'), ds, val)
     m = evaluate_arrays(np.asarray(ds.initial)[val], np.asarray(ds.target)[val], pred,
                         RobotSilhouette.fit(np.asarray(ds.initial)), touching[val])
@@ -396,6 +430,14 @@ def test_the_visibility_reads_the_scene_code_and_older_checkpoints_still_load(tm
         'keypoints': KEYPOINTS, 'scene_visibility': True}))
     with pytest.raises(CheckpointError, match='visibility'):
         load_checkpoint(tmp_path / 'mixed')
+    # Nor does it draw the learned outline (the plain ramp it was trained with), and its
+    # weights under a config that claims one are refused by name too.
+    assert legacy.shader.outline is None and not legacy.outline
+    assert shipped.shader.outline is None           # the shipped recipe draws it plainly
+    save_checkpoint(tmp_path / 'no_outline', legacy, dict(old, arch_params={
+        'keypoints': KEYPOINTS, 'outline': True}))
+    with pytest.raises(CheckpointError, match='outline'):
+        load_checkpoint(tmp_path / 'no_outline')
 
 
 def test_tube_trains_under_torchrun_with_two_processes(simulated, tmp_path):

@@ -10,17 +10,23 @@ from __future__ import annotations
 import json
 import sys
 
+OUTLINE_HELP = ("tube: learn how far out of the keypoints' radius the drawn outline lies, "
+                'per view (off in the shipped recipe; docs/model.md, "The outline")')
+
 
 def _train(args) -> int:
     from softshape_ros.data import load_dataset
     from softshape_ros.model.train import TrainConfig, train
+    if args.outline and args.arch != 'tube':
+        raise SystemExit(f'softshape train: --outline is a tube model option, not {args.arch!r}')
     ds = load_dataset(args.dataset)
     rows = None if args.rows is None else range(min(args.rows, len(ds)))
     cfg = TrainConfig(arch=args.arch, seed=args.seed, split=args.split,
                       batch_size=args.batch_size, lr=args.lr, max_steps=args.max_steps,
                       eval_every=args.eval_every, patience=args.patience,
                       threads=args.threads, loss=args.loss, init=args.init,
-                      min_steps=args.min_steps, scene_batch=args.scene_batch)
+                      min_steps=args.min_steps, scene_batch=args.scene_batch,
+                      arch_params={'outline': True} if args.outline else {})
     res = train(ds, cfg, out=args.out, indices=rows, progress=not args.quiet)
     summary = {'checkpoint': args.out, 'steps': res.steps,
                'val_rmse_255': res.val_rmse_255, 'copy_val_rmse_255': res.copy_val_rmse_255}
@@ -80,7 +86,7 @@ def _pretrain(args) -> int:
     s = PretrainSettings.for_arch(args.arch, **{k: getattr(args, k) for k in (
         'samples', 'scenes', 'seed', 'max_steps', 'batch_size', 'lr', 'eval_every',
         'patience', 'threads', 'workers', 'keypoint_steps', 'keypoint_scene_batch',
-        'toward_share', 'sparse_share')})
+        'toward_share', 'sparse_share', 'outline')})
     out = args.out or f'models/{args.arch}_stereo_gray'
     print(json.dumps(pretrain(s, out, args.work, progress=not args.quiet)))
     return 0
@@ -107,6 +113,7 @@ def register(sub) -> None:
     p.add_argument('--scene-batch', type=int, default=0,
                    help='N > 0: batches of N whole placements (all their rows) instead of '
                         '--batch-size rows; tube encodes each placement once a batch')
+    p.add_argument('--outline', action='store_true', help=OUTLINE_HELP)
     p.add_argument('--lr', type=float, default=None,
                    help="Adam learning rate (default: the architecture's own, "
                         'DEFAULT_LR in softshape_ros/model/train.py)')
@@ -175,6 +182,7 @@ def register(sub) -> None:
                        help=f'default {getattr(d, flag.replace("-", "_"))} (ours)')
     p.add_argument('--workers', type=int, default=None,
                    help='simulation processes (0: one per core)')
+    p.add_argument('--outline', action='store_true', default=None, help=OUTLINE_HELP)
     p.add_argument('--quiet', action='store_true', help='no progress bars')
     p.set_defaults(func=_pretrain)
 

@@ -42,6 +42,7 @@ class PretrainSettings:
     keypoint_scene_batch: int = 0   # tube: whole placements per keypoint batch (0: rows)
     toward_share: float = TOWARD_SHARE  # the simulated actuations (sim.generate.make_plan)
     sparse_share: float = SPARSE_SHARE
+    outline: bool = False           # tube: the learned outline (TubeNet(outline=True))
 
     @classmethod
     def for_arch(cls, arch: str, **given) -> 'PretrainSettings':
@@ -88,11 +89,14 @@ def simulated_dataset(settings: PretrainSettings, work, progress: bool = True):
 
 def pretrain(settings: PretrainSettings, out, work, progress: bool = True) -> dict:
     """Simulate (or reuse) the data, train ``settings.arch``, write the checkpoint to ``out``."""
+    if settings.outline and settings.arch != 'tube':
+        raise ValueError(f'outline is a tube model option, not {settings.arch!r}')
     ds = simulated_dataset(settings, work, progress)
     cfg = TrainConfig(arch=settings.arch, seed=settings.seed, split='scene',
                       batch_size=settings.batch_size, lr=settings.lr,
                       max_steps=settings.max_steps, eval_every=settings.eval_every,
-                      patience=settings.patience, threads=settings.threads)
+                      patience=settings.patience, threads=settings.threads,
+                      arch_params={'outline': True} if settings.outline else {})
     t0 = time.perf_counter()
     first, res = train_in_phases(ds, cfg, settings.keypoint_steps,
                                  Path(work) / f'{settings.arch}_keypoints', out=out,

@@ -287,6 +287,9 @@ def _network(ds, config, rows, sil):
     bad = [f'{k} {cfg[k]!r} (dataset/config: {v!r})' for k, v in want.items()
            if (cfg[k] != v if k != 'max_pressure_pa'
                else not np.allclose(cfg[k], v, rtol=1e-6))]
+    # The checkpoint's architecture is what it is: parameters asked for must agree with it.
+    bad += [f'arch_params {k}={cfg["arch_params"].get(k)!r} (config: {v!r})'
+            for k, v in config.arch_params.items() if cfg['arch_params'].get(k) != v]
     if bad:
         raise CheckpointError(f'{config.init}: cannot fine-tune on {ds.path}: the checkpoint '
                               f'has {"; ".join(bad)}')

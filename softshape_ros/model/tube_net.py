@@ -327,7 +327,7 @@ class TubeNet(nn.Module):
     """The structured forward model (see the module notes); ``forward`` returns the image."""
 
     def __init__(self, views: int, channels: int, keypoints: int = KEYPOINTS, size: int = 64,
-                 cond: int = 64, scene_visibility: bool = False):
+                 cond: int = 64, scene_visibility: bool = False, outline: bool = False):
         super().__init__()
         self.views, self.channels, self.size = int(views), int(channels), int(size)
         self.keypoints = KeypointNet(views, channels, keypoints, size, cond=cond)
@@ -337,7 +337,11 @@ class TubeNet(nn.Module):
         self.scene_visibility = bool(scene_visibility)
         code = self.keypoints.scene.describe.in_features if scene_visibility else 0
         self.visibility = VisibilityNet(views, channels, cond, code=code)
-        self.shader = TubeShader(views, channels)
+        # True: the shader learns how far out the drawn outline lies (``softshape train
+        # --outline``); False (the shipped recipe, and checkpoints that record no
+        # ``outline``): the edge at the keypoints' radius. docs/model.md, "The outline".
+        self.outline = bool(outline)
+        self.shader = TubeShader(views, channels, outline=self.outline)
         self.cache = False              # inference: keep the last scene's SceneParts
         self._cached = None
 
@@ -372,7 +376,7 @@ class TubeNet(nn.Module):
         """Compose the tube over ``background``: (image, alpha, coverage, visibility logits)."""
         b, v, c, s = image.shape[0], self.views, self.channels, self.size
         field: TubeField = tube_field(keypoints, s)
-        cov = coverage(field.sd).view(b, v, s, s)
+        cov = self.shader.coverage(field).view(b, v, s, s)
         depth = (field.depth / keypoints[:, :, :1, R].clamp_min(0.5)).view(b, v, s, s)  # radii
         logit = self.visibility(torch.cat([image, cov, depth * cov,
                                            coordinate_planes(b, s, s, image)], 1), cond)

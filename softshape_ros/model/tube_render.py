@@ -116,15 +116,27 @@ class TubeShader(nn.Module):
 
     A Lambertian surface under a directional light ``l`` (camera frame): ``c0 + c1
     max(n . l, 0)`` per channel; ``l`` (a unit vector) and ``c0``, ``c1`` are learned per
-    view, starting at the simulator's palette and head light.
+    view, starting at the simulator's palette and head light. ``outline`` (``TubeNet(outline=
+    True)``, opt-in): per view, how far (px) the drawn outline lies outside the keypoints'
+    radius (:meth:`coverage`), learned from zero. Why: drawn from the shape record's own
+    keypoints, the simulated robot's edge sat 0.1 px further out than the 1-pixel ramp put
+    it, and the silhouette lost a quarter of its rim pixels to that; where the edge lies
+    depends on how the images were made (docs/model.md, "The outline").
     """
 
-    def __init__(self, views: int, channels: int):
+    def __init__(self, views: int, channels: int, outline: bool = False):
         super().__init__()
         self.views, self.channels = views, channels
         self.light = nn.Parameter(torch.tensor([0.0, -0.5, -0.86]).repeat(views, 1))
         self.c0 = nn.Parameter(torch.full((views, channels), 0.17))
         self.c1 = nn.Parameter(torch.full((views, channels), 0.21))
+        self.outline = nn.Parameter(torch.zeros(views)) if outline else None
+
+    def coverage(self, field: TubeField) -> torch.Tensor:
+        """Return B x V x P: the share of each pixel the tube covers (:func:`coverage`)."""
+        if self.outline is None:
+            return coverage(field.sd)
+        return coverage(field.sd - self.outline[None, :, None])
 
     def forward(self, field: TubeField) -> torch.Tensor:
         """Return B x V x C x P robot colour in [0, 1] units."""
