@@ -127,6 +127,13 @@ def test_fast_crop_render_matches_preprocess_of_full_frame():
         d = np.abs(fast[name].astype(int) - ref)
         assert fast[name].shape == ref.shape == (1, 64, 64)
         assert d.mean() < 1.0 and np.percentile(d, 99) < 16, (d.mean(), np.percentile(d, 99))
+    # supersample 0 samples the crop's own camera pixels: the camera node's input to the
+    # pixel (gray rendered directly: cvtColor's rounding may move a level), where 3x3
+    # samples a pixel put the edges up to a fifth of a pixel elsewhere (docs/model.md).
+    same = rig.render_inputs(st, size=64, gray=True, supersample=0)
+    for name, img in full.items():
+        d = np.abs(same[name].astype(int) - preprocess(img, CFG.cameras[name].crop_px, 64, True))
+        assert d.max() <= 1, (name, d.max())
 
 
 def test_gray_render_is_the_gray_of_the_colour_render():
@@ -270,8 +277,8 @@ def test_bad_input_gives_clear_errors_never_an_image():
         rig.render(dataclasses.replace(st, radii_m=np.zeros_like(st.radii_m)))
     with pytest.raises(RenderError, match='backbone must be'):
         rig.render(dataclasses.replace(st, backbone_m=st.backbone_m[:, :2]))
-    for size, ss in ((0, 4), (64, 0), (2.5, 4)):
-        with pytest.raises(RenderError, match='integers >= 1'):
+    for size, ss in ((0, 4), (64, -1), (2.5, 4), (64, 1.5)):
+        with pytest.raises(RenderError, match='size must be an integer >= 1 and supersample'):
             rig.render_inputs(st, size=size, supersample=ss)
     with pytest.raises(RenderError, match='unknown camera'):
         rig.render_inputs(st, cameras=['top'])

@@ -126,7 +126,8 @@ def register(sub) -> None:
     p.add_argument('--size', type=int, default=0, help='image size (default: config)')
     p.add_argument('--rgb', action='store_true', help='keep colour (default: config gray)')
     p.add_argument('--supersample', type=int, default=3,
-                   help='render the crop at size x this, then area-resize (default 3)')
+                   help='render the crop at size x this, then area-resize (default 3; 0: '
+                        "at the camera's own pixels, as the rig's camera nodes see it)")
     p.add_argument('--image-noise', type=float, default=0.0, help='gray levels (std)')
     p.add_argument('--pressure-noise', type=float, default=0.0, help='Pa (std)')
     p.add_argument('--overwrite', action='store_true')

@@ -43,6 +43,7 @@ class PretrainSettings:
     toward_share: float = TOWARD_SHARE  # the simulated actuations (sim.generate.make_plan)
     sparse_share: float = SPARSE_SHARE
     outline: bool = False           # tube: the learned outline (TubeNet(outline=True))
+    supersample: int = 3            # simulated images' samples per pixel a side (0: camera's)
 
     @classmethod
     def for_arch(cls, arch: str, **given) -> 'PretrainSettings':
@@ -73,7 +74,8 @@ def simulated_dataset(settings: PretrainSettings, work, progress: bool = True):
     from softshape_ros.sim.generate import generate, make_plan
     cfg = load_rig_config()
     key = {k: v for k, v in asdict(settings).items()
-           if k in ('samples', 'scenes', 'views', 'seed', 'toward_share', 'sparse_share')}
+           if k in ('samples', 'scenes', 'views', 'seed', 'toward_share', 'sparse_share',
+                    'supersample')}
     key['views'] = list(key['views'])
     path = Path(work) / f'sim_{settings.samples}_{settings.scenes}_{settings.seed}'
     marker = path / 'pretrain_key.json'
@@ -82,6 +84,7 @@ def simulated_dataset(settings: PretrainSettings, work, progress: bool = True):
     plan = make_plan(cfg, settings.samples, settings.scenes, settings.seed,
                      toward_share=settings.toward_share, sparse_share=settings.sparse_share)
     generate(cfg, plan, path, views=list(settings.views), workers=settings.workers,
+             supersample=settings.supersample,
              overwrite=True, progress=progress, source='softshape pretrain')
     marker.write_text(json.dumps(key))
     return load_dataset(path)

@@ -454,9 +454,10 @@ def _check_args(cfg: RigConfig, views, size, supersample, noise, chunk) -> None:
     if not list(views) or unknown:
         raise ValueError(f'views must be cameras of the config {list(cfg.cameras)}, got '
                          f'{list(views)}')
-    for name, v in (('size', size), ('supersample', supersample), ('chunk', chunk)):
-        if int(v) != v or v < 1:
-            raise ValueError(f'{name} must be an integer >= 1, got {v!r}')
+    for name, v, least in (('size', size, 1), ('supersample', supersample, 0),
+                           ('chunk', chunk, 1)):
+        if int(v) != v or v < least:
+            raise ValueError(f'{name} must be an integer >= {least}, got {v!r}')
     if len(noise) != 2 or not all(math.isfinite(v) and v >= 0 for v in noise):
         raise ValueError(f'noise (image gray levels, pressure Pa) must be >= 0, got {noise}')
 

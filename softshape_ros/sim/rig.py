@@ -335,27 +335,29 @@ class SimRig:
         result as preprocessing a full-resolution frame, far faster (test_sim_render).
         """
         from softshape_ros.vision.preprocess import preprocess
-        if int(size) != size or size < 1 or int(supersample) != supersample or supersample < 1:
-            raise RenderError(f'size and supersample must be integers >= 1, got {size!r} and '
-                              f'{supersample!r}')
+        if int(size) != size or size < 1 or int(supersample) != supersample or supersample < 0:
+            raise RenderError(f'size must be an integer >= 1 and supersample >= 0, got '
+                              f'{size!r} and {supersample!r}')
+        size, supersample = int(size), int(supersample)
         names = list(cameras) if cameras is not None else list(self.cameras)
         unknown = [n for n in names if n not in self.cameras]
         if unknown:
             raise RenderError(f'unknown camera(s) {unknown}; the rig has {list(self.cameras)}')
         self.check_views(names)
         out = {}
-        n = int(size) * int(supersample)
         # Noise is the sensor's, on the colour frame; without it a gray input is rendered
         # gray (the same pixels as converting the colour crop, a fifth less work).
         render_gray = gray and not self.image_noise_std > 0
         for name in names:
             cam = self.cameras[name]
-            grid = cam.grid(cam.crop, (n, n))
+            # 0: the crop's own camera pixels, each sampled at its centre (what render()
+            # and the camera node's preprocess make of a frame, to the pixel).
+            grid = cam.grid(cam.crop, None if supersample == 0 else (size * supersample,) * 2)
             img = self._noisy(render_view(cam, state.backbone_m, state.radii_m, self.obstacles,
                                           grid, objects=self._objects_for(
                                               name, grid, OUTLINE_TOLERANCE_PX),
                                           gray=render_gray))
-            out[name] = preprocess(img, [0, 0, n, n], int(size), gray)
+            out[name] = preprocess(img, [0, 0, grid[4], grid[5]], int(size), gray)
         return out
 
     def snap(self, pressures_pa) -> dict:
