@@ -333,6 +333,8 @@ class SimRig:
         centre of the source-pixel area it stands for), then passed through
         :func:`~softshape_ros.vision.preprocess.preprocess` (gray, area resize): the same
         result as preprocessing a full-resolution frame, far faster (test_sim_render).
+        ``supersample`` 0 renders the crop at the camera's own pixels: that result to the
+        gray level, edges included (docs/simulator.md).
         """
         from softshape_ros.vision.preprocess import preprocess
         if int(size) != size or size < 1 or int(supersample) != supersample or supersample < 0:
@@ -357,7 +359,8 @@ class SimRig:
                                           grid, objects=self._objects_for(
                                               name, grid, OUTLINE_TOLERANCE_PX),
                                           gray=render_gray))
-            out[name] = preprocess(img, [0, 0, grid[4], grid[5]], int(size), gray)
+            width, height = grid[4:]
+            out[name] = preprocess(img, [0, 0, width, height], size, gray)
         return out
 
     def snap(self, pressures_pa) -> dict:
