@@ -43,6 +43,17 @@ def test_distance_sweep_cli_writes_numbers_and_figure(tmp_path, capsys):
     saved = json.loads((tmp_path / 'o' / 'distance_sweep.json').read_text())
     assert printed == saved and len(saved['rows']) == 5
     assert (tmp_path / 'o' / 'distance_sweep.png').is_file()
+    # The same sweep on images made at the camera's own pixels: the same pushes to a pixel.
+    assert cli(['distance-sweep', '--checkpoint', str(ck), '--out', str(tmp_path / 'c'),
+                '--supersample', '0']) == 0
+    camera = json.loads(capsys.readouterr().out)
+    assert saved['supersample'] == 4 and camera['supersample'] == 0
+    for a, b in zip(saved['rows'], camera['rows']):
+        assert abs(a['tip_shift_px_simulated'] - b['tip_shift_px_simulated']) < 1.0
+    assert cli(['distance-sweep', '--checkpoint', str(ck), '--out', str(tmp_path / 'n'),
+                '--supersample', '-1']) == 2
+    assert '--supersample must be >= 0' in capsys.readouterr().err
+    assert not (tmp_path / 'n').exists()
 
 
 def test_pretrain_tube_runs_its_two_phases_and_reuses_the_data(tmp_path, capsys):
@@ -75,3 +86,12 @@ def test_pretrain_tube_runs_its_two_phases_and_reuses_the_data(tmp_path, capsys)
     meta = json.loads((data / 'meta.json').read_text())
     assert (data / 'meta.json').stat().st_mtime_ns != stamp
     assert meta['simulator']['sparse_share'] == 0
+    # A mix of renderings is a data setting too: simulated again, each placement one of them.
+    stamp = (data / 'meta.json').stat().st_mtime_ns
+    assert cli(args + ['--sparse-share', '0', '--max-steps', '1', '--keypoint-steps', '1',
+                       '--supersample', '0,3']) == 0
+    meta = json.loads((data / 'meta.json').read_text())
+    assert (data / 'meta.json').stat().st_mtime_ns != stamp
+    assert meta['rendering']['supersample'] == [0, 3]
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])[
+        'settings']['supersample'] == [0, 3]

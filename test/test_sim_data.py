@@ -14,8 +14,9 @@ from softshape_ros.model.reproduce import select_views
 from softshape_ros.scene import Scene
 from softshape_ros.sim import SimRig
 from softshape_ros.sim.generate import (
-    CONTACT_GAP_M, MAX_GAP_M, SPARSE_SHARE, TOWARD_WINDOW_RAD, ContactSample, bend_directions,
-    generate, make_plan, measure_contact, sparse_pressures, toward_pressures)
+    CHUNK, CONTACT_GAP_M, MAX_GAP_M, SPARSE_SHARE, TOWARD_WINDOW_RAD, ContactSample,
+    bend_directions, generate, make_plan, measure_contact, scene_supersample, sparse_pressures,
+    toward_pressures)
 
 CFG = load_rig_config()
 VIEWS = ['main', 'side']
@@ -287,6 +288,39 @@ def test_a_failing_worker_stops_the_run_and_leaves_nothing(tmp_path):
     assert list(tmp_path.iterdir()) == []           # no dataset, no .partial folder
 
 
+def test_a_mix_of_renderings_draws_one_per_placement(tmp_path):
+    # Each placement's rest and actuated images are those of one rendering, the same as
+    # rendering the whole plan that way; both renderings are drawn; meta.json says which.
+    plan = make_plan(CFG, 24, 8, seed=3)
+    mix, _ = generate(CFG, plan, tmp_path / 'mix', VIEWS, workers=1, progress=False,
+                      supersample=(0, 3))
+    pure = {s: generate(CFG, plan, tmp_path / f'ss{s}', VIEWS, workers=1, progress=False,
+                        supersample=s)[0] for s in (0, 3)}
+    drawn = set()
+    for c in plan.chunks(CHUNK):
+        rows = slice(c.start, c.stop)
+        s = scene_supersample((0, 3), plan.seed, c.scene_index)
+        drawn.add(s)
+        assert np.array_equal(mix.initial[rows], pure[s].initial[rows])
+        assert np.array_equal(mix.target[rows], pure[s].target[rows])
+        assert not np.array_equal(mix.initial[rows], pure[3 - s].initial[rows])
+    assert drawn == {0, 3}
+    assert mix.meta['rendering'] == {'supersample': [0, 3], 'per': 'placement'}
+    assert pure[3].meta['rendering']['supersample'] == [3]
+
+
+def test_simulate_cli_parses_and_refuses_supersample_mixes(tmp_path, capsys):
+    from softshape_ros.commands.sim import supersample_arg
+    assert supersample_arg('3') == 3 and supersample_arg('0,3') == (0, 3)
+    from softshape_ros.cli import main
+    base = ['simulate', '--samples', '2', '--scenes', '1', '--out', str(tmp_path / 'x')]
+    for bad in ('0,x', '-1', '3,'):
+        with pytest.raises(SystemExit):
+            main(base + ['--supersample', bad])
+        assert 'comma-separated' in capsys.readouterr().err
+    assert not (tmp_path / 'x').exists()
+
+
 def test_simulate_cli_refuses_bad_worker_counts_and_shares(tmp_path, capsys):
     from softshape_ros.cli import main
     base = ['simulate', '--samples', '2', '--scenes', '1', '--out', str(tmp_path / 'x')]
@@ -301,6 +335,8 @@ def test_simulate_cli_refuses_bad_worker_counts_and_shares(tmp_path, capsys):
     (dict(views=['main', 'top']), 'views must be cameras'),
     (dict(size=0), 'size must be an integer >= 1'),
     (dict(supersample=1.5), 'supersample must be an integer'),
+    (dict(supersample=(0, -1)), 'supersample must be an integer >= 0'),
+    (dict(supersample=()), 'supersample must name at least one'),
     (dict(noise=(-1.0, 0.0)), 'noise'),
     (dict(noise=(0.0, float('nan'))), 'noise'),
     (dict(chunk=0), 'chunk must be'),

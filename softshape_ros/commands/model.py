@@ -10,6 +10,8 @@ from __future__ import annotations
 import json
 import sys
 
+from softshape_ros.commands.sim import supersample_arg
+
 OUTLINE_HELP = ("tube: learn how far out of the keypoints' radius the drawn outline lies, "
                 'per view (off in the shipped recipe; docs/model.md, "The outline")')
 
@@ -94,7 +96,10 @@ def _pretrain(args) -> int:
 
 def _distance_sweep(args) -> int:
     from softshape_ros.experiments.distance_sweep import run
-    print(json.dumps(run(args.checkpoint, args.out), indent=2))
+    if args.supersample < 0:
+        raise ValueError(f'--supersample must be >= 0 (0: the camera\'s pixels), got '
+                         f'{args.supersample}')
+    print(json.dumps(run(args.checkpoint, args.out, args.supersample), indent=2))
     return 0
 
 
@@ -162,6 +167,7 @@ def register(sub) -> None:
     p.add_argument('--no-fig4c', action='store_true', help='skip the object-distance sweep')
     p.set_defaults(func=_reproduce)
 
+    from softshape_ros.experiments.distance_sweep import SUPERSAMPLE
     from softshape_ros.experiments.pretrain import TUBE, PretrainSettings
     d = PretrainSettings()
     p = sub.add_parser('pretrain', help='simulate a dataset and pre-train ours on it '
@@ -178,7 +184,7 @@ def register(sub) -> None:
                       ('batch-size', int), ('lr', float),
                       ('eval-every', int), ('patience', int), ('threads', int),
                       ('toward-share', float), ('sparse-share', float),
-                      ('supersample', int)):
+                      ('supersample', supersample_arg)):
         p.add_argument(f'--{flag}', type=typ, default=None,
                        help=f'default {getattr(d, flag.replace("-", "_"))} (ours)')
     p.add_argument('--workers', type=int, default=None,
@@ -191,4 +197,7 @@ def register(sub) -> None:
                                               "simulator's push vs the model's")
     p.add_argument('--checkpoint', required=True)
     p.add_argument('--out', required=True, help='folder for distance_sweep.json and .png')
+    p.add_argument('--supersample', type=int, default=SUPERSAMPLE,
+                   help=f'render the images at this many samples a pixel a side (default '
+                        f"{SUPERSAMPLE}; 0: the camera's own pixels)")
     p.set_defaults(func=_distance_sweep)

@@ -9,6 +9,19 @@ from softshape_ros.config import load_rig_config
 from softshape_ros.scene import Scene, load_session
 
 
+def supersample_arg(text: str):
+    """Parse ``--supersample``: one int >= 0, or several comma-separated (a tuple: a mix)."""
+    import argparse
+    try:
+        values = tuple(int(v) for v in text.split(','))
+    except ValueError:
+        values = ()
+    if not values or min(values) < 0:
+        raise argparse.ArgumentTypeError(
+            f'expected integers >= 0, comma-separated (3, or 0,3), got {text!r}')
+    return values[0] if len(values) == 1 else values
+
+
 def _onoff(text: str) -> bool:
     t = text.lower()
     if t in ('on', 'true', '1', 'yes'):
@@ -125,9 +138,10 @@ def register(sub) -> None:
                    help='processes (default 0: all cores; 1: no worker processes)')
     p.add_argument('--size', type=int, default=0, help='image size (default: config)')
     p.add_argument('--rgb', action='store_true', help='keep colour (default: config gray)')
-    p.add_argument('--supersample', type=int, default=3,
+    p.add_argument('--supersample', type=supersample_arg, default=3,
                    help='render the crop at size x this, then area-resize (default 3; 0: '
-                        "at the camera's own pixels, as the rig's camera nodes see it)")
+                        "at the camera's own pixels, as the rig's camera nodes see it); "
+                        'several, comma-separated (0,3): each placement drawn with one')
     p.add_argument('--image-noise', type=float, default=0.0, help='gray levels (std)')
     p.add_argument('--pressure-noise', type=float, default=0.0, help='Pa (std)')
     p.add_argument('--overwrite', action='store_true')

@@ -24,6 +24,7 @@ from softshape_ros.scene import Scene
 DISTANCES_M = (0.020, 0.023, 0.026, 0.030, 0.036)
 CYLINDER = {'radius_m': 0.006, 'height_m': 0.05}
 SHIFT_TOLERANCE_PX = 1.5        # issue 18: predicted push within 1.5 px of the simulated one
+SUPERSAMPLE = 4                 # the sweep's images: 4x4 samples a pixel (render_inputs')
 
 
 @dataclass(frozen=True)
@@ -40,9 +41,9 @@ class SweepRow:
     intrusion: float
 
 
-def _images(rig, state, pred) -> np.ndarray:
+def _images(rig, state, pred, supersample) -> np.ndarray:
     r = rig.render_inputs(state, size=pred.image_size, gray=pred.channels == 1,
-                          cameras=pred.views)
+                          supersample=supersample, cameras=pred.views)
     return np.stack([r[v] for v in pred.views])
 
 
@@ -59,9 +60,13 @@ def _actuation(rig, lim) -> np.ndarray:
     return act
 
 
-def distance_sweep(checkpoint, path=None, distances=DISTANCES_M) -> dict:
+def distance_sweep(checkpoint, path=None, distances=DISTANCES_M,
+                   supersample: int = SUPERSAMPLE) -> dict:
     """
     Run the sweep for ``checkpoint``; draw the panels to ``path`` (PNG) if given.
+
+    ``supersample``: how the images are rendered (``SimRig.render_inputs``; 0: the camera's
+    own pixels). A model should not care; one that learned a rendering's edges does.
 
     Returns the actuation, one :class:`SweepRow` per distance (as dicts) and the worst
     shift error over the distances.
@@ -72,14 +77,14 @@ def distance_sweep(checkpoint, path=None, distances=DISTANCES_M) -> dict:
     rig = SimRig(load_rig_config())
     act = _actuation(rig, np.asarray(pred.max_pressure_pa))
     rig.set_scene(None)
-    free = _images(rig, rig.solve(act), pred)
+    free = _images(rig, rig.solve(act), pred, supersample)
     initial, target, touching = [], [], []
     for i, d in enumerate(distances):
         rig.set_scene(Scene(id=1000 + i, object='cylinder', position_m=(d, 0.0, 0.02),
                             dims=dict(CYLINDER)))
-        initial.append(_images(rig, rig.solve(np.zeros(6)), pred))
+        initial.append(_images(rig, rig.solve(np.zeros(6)), pred, supersample))
         st = rig.solve(act)
-        target.append(_images(rig, st, pred))
+        target.append(_images(rig, st, pred, supersample))
         touching.append(any(c.gap_m < 0 and not c.ridge for c in st.contacts))
     initial, target = np.stack(initial), np.stack(target)
     predicted = pred.predict_batch(initial, [act] * len(distances))
@@ -104,17 +109,18 @@ def distance_sweep(checkpoint, path=None, distances=DISTANCES_M) -> dict:
                                       f'{r.tip_shift_px_simulated:.0f} px, model '
                                       f'{r.tip_shift_px_predicted:.0f}' for r in rows])
     worst = max(r.shift_error_px for r in rows)
-    return {'checkpoint': str(checkpoint), 'actuation_pa': act.tolist(),
+    return {'checkpoint': str(checkpoint), 'supersample': supersample,
+            'actuation_pa': act.tolist(),
             'rows': [asdict(r) for r in rows], 'worst_shift_error_px': worst,
             'within_tolerance': bool(worst <= SHIFT_TOLERANCE_PX),
             'tolerance_px': SHIFT_TOLERANCE_PX,
             'figure': None if path is None else str(path)}
 
 
-def run(checkpoint, out) -> dict:
+def run(checkpoint, out, supersample: int = SUPERSAMPLE) -> dict:
     """Write ``distance_sweep.json`` and ``distance_sweep.png`` to ``out``; return the result."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    res = distance_sweep(checkpoint, out / 'distance_sweep.png')
+    res = distance_sweep(checkpoint, out / 'distance_sweep.png', supersample=supersample)
     (out / 'distance_sweep.json').write_text(json.dumps(res, indent=2))
     return res

@@ -43,7 +43,9 @@ class PretrainSettings:
     toward_share: float = TOWARD_SHARE  # the simulated actuations (sim.generate.make_plan)
     sparse_share: float = SPARSE_SHARE
     outline: bool = False           # tube: the learned outline (TubeNet(outline=True))
-    supersample: int = 3            # simulated images' samples per pixel a side (0: camera's)
+    # The simulated images' samples per pixel a side (0: the camera's own pixels; several:
+    # a mix, each placement rendered with one).
+    supersample: int | tuple = 3
 
     @classmethod
     def for_arch(cls, arch: str, **given) -> 'PretrainSettings':
@@ -77,6 +79,8 @@ def simulated_dataset(settings: PretrainSettings, work, progress: bool = True):
            if k in ('samples', 'scenes', 'views', 'seed', 'toward_share', 'sparse_share',
                     'supersample')}
     key['views'] = list(key['views'])
+    if isinstance(key['supersample'], (tuple, list)):
+        key['supersample'] = list(key['supersample'])
     path = Path(work) / f'sim_{settings.samples}_{settings.scenes}_{settings.seed}'
     marker = path / 'pretrain_key.json'
     if marker.is_file() and json.loads(marker.read_text()) == key:

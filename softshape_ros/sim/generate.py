@@ -341,7 +341,26 @@ def _init_worker(cfg, rows, size, gray, views, supersample, noise):
     rig = SimRig(cfg, image_noise_std=noise[0], pressure_noise_pa=noise[1])
     _WORKER.clear()
     _WORKER.update(cfg=cfg, rows=rows, size=size, gray=gray, views=list(views),
-                   supersample=supersample, rig=rig, rest=None)
+                   supersample=supersamples(supersample), rig=rig, rest=None)
+
+
+def supersamples(supersample) -> tuple:
+    """Return ``supersample`` (an int, or several: a mix) as a tuple of ints."""
+    return tuple(supersample) if isinstance(supersample, (tuple, list)) else (supersample,)
+
+
+def scene_supersample(supersample, seed: int, scene_index: int) -> int:
+    """
+    Return the samples per pixel a side a placement is rendered with.
+
+    One of ``supersample`` (a mix), drawn per placement from the plan's seed, so the rest
+    and actuated images of a placement are rendered alike, as one camera films them,
+    whichever process renders them.
+    """
+    choices = supersamples(supersample)
+    if len(choices) == 1:
+        return int(choices[0])
+    return int(choices[np.random.default_rng([seed, scene_index, 2]).integers(len(choices))])
 
 
 CPU_PARTS = ('solve', 'render', 'contact_record', 'rest_images', 'write', 'other')
@@ -364,8 +383,10 @@ def simulate_chunk(job):
     si = chunk.scene_index
     spent = dict.fromkeys(CPU_PARTS, 0.0)
 
+    supersample = scene_supersample(w['supersample'], seed, si)
+
     def inputs(state):
-        img = rig.render_inputs(state, w['size'], w['gray'], w['supersample'], views)
+        img = rig.render_inputs(state, w['size'], w['gray'], supersample, views)
         return np.stack([img[v] for v in views])
 
     c0 = cpu()
@@ -454,9 +475,12 @@ def _check_args(cfg: RigConfig, views, size, supersample, noise, chunk) -> None:
     if not list(views) or unknown:
         raise ValueError(f'views must be cameras of the config {list(cfg.cameras)}, got '
                          f'{list(views)}')
-    for name, v, least in (('size', size, 1), ('supersample', supersample, 0),
+    if not supersamples(supersample):
+        raise ValueError('supersample must name at least one setting, got none')
+    for name, v, least in (('size', size, 1), *(('supersample', s, 0)
+                                                for s in supersamples(supersample)),
                            ('chunk', chunk, 1)):
-        if int(v) != v or v < least:
+        if not isinstance(v, (int, np.integer, float)) or int(v) != v or v < least:
             raise ValueError(f'{name} must be an integer >= {least}, got {v!r}')
     if len(noise) != 2 or not all(math.isfinite(v) and v >= 0 for v in noise):
         raise ValueError(f'noise (image gray levels, pressure Pa) must be >= 0, got {noise}')
@@ -486,10 +510,13 @@ def _pool(workers: int, init, jobs):
 
 
 def generate(cfg: RigConfig, plan: Plan, out, views, size: int = 64, gray: bool = True,
-             workers: int = 0, supersample: int = 3, noise=(0.0, 0.0), overwrite=False,
+             workers: int = 0, supersample=3, noise=(0.0, 0.0), overwrite=False,
              progress: bool = True, source: str = '', chunk: int = CHUNK):
     """
     Write the plan as a dataset at ``out``: chunks over processes, tqdm progress.
+
+    ``supersample``: samples per pixel a side (0: the camera's own pixels), or several, a
+    mix: each placement rendered with one of them (:func:`scene_supersample`).
 
     ``workers``: processes (0: all cores; 1: this process). A worker that dies (killed,
     out of memory) stops the run with a RuntimeError instead of hanging it; any failure
@@ -547,6 +574,8 @@ def generate(cfg: RigConfig, plan: Plan, out, views, size: int = 64, gray: bool 
         config=cfg.source, scenes=[s.to_json() for s in plan.scenes],
         normalisation='pressure / max_pressure_pa', simulator=summary,
         scene_distribution=distribution,
+        rendering={'supersample': [int(v) for v in supersamples(supersample)],
+                   'per': 'placement'},
         dropped={'count': 0, 'why': 'failed solves are redrawn, counted in '
                  'simulator.replaced_failed_solves'})
     wall = time.perf_counter() - t0
