@@ -14,7 +14,7 @@ from softshape_ros.model.reproduce import select_views
 from softshape_ros.scene import Scene
 from softshape_ros.sim import SimRig
 from softshape_ros.sim.generate import (
-    CHUNK, CONTACT_GAP_M, MAX_GAP_M, SPARSE_SHARE, TOWARD_WINDOW_RAD, ContactSample,
+    CHUNK, CONTACT_GAP_M, FAR_GAP_M, MAX_GAP_M, SPARSE_SHARE, TOWARD_WINDOW_RAD, ContactSample,
     bend_directions, generate, make_plan, measure_contact, scene_supersample, sparse_pressures,
     toward_pressures)
 
@@ -57,6 +57,34 @@ def test_default_distribution_touches_in_most_samples(small):
         gaps.append(min(float(o.sdf(st.backbone_m)[0].min() - st.radii_m.max())
                         for o in rig.obstacles))
     assert min(gaps) >= -1e-9 and max(gaps) - min(gaps) > 0.3 * MAX_GAP_M, gaps
+
+
+def rest_gaps(scenes):
+    """Each scene's object surface to the robot's at rest (m)."""
+    rig = SimRig(CFG)
+    out = []
+    for sc in scenes:
+        rig.set_scene(sc)
+        st = rig.solve([0.0] * 6)
+        out.append(min(float(o.sdf(st.backbone_m)[0].min() - st.radii_m.max())
+                       for o in rig.obstacles))
+    return np.array(out)
+
+
+def test_a_far_share_places_scenes_beyond_reach_and_keeps_the_rest(tmp_path):
+    near = make_plan(CFG, 18, 18, seed=4)
+    mixed = make_plan(CFG, 18, 18, seed=4, far_share=0.5)
+    far = [a != b for a, b in zip(near.scenes, mixed.scenes)]
+    assert 3 <= sum(far) <= 15                              # about half, drawn per scene
+    assert np.array_equal(near.pressures, mixed.pressures)  # the actuations are kept
+    gaps = rest_gaps([s for s, f in zip(mixed.scenes, far) if f])
+    # The surface gap is measured on the object's mesh, within a mm of the drawn one.
+    assert gaps.min() > MAX_GAP_M - 1e-3 and gaps.max() < FAR_GAP_M + 1e-3, gaps
+    ds, summary = generate(CFG, mixed, tmp_path / 'ds', VIEWS, workers=1, progress=False)
+    assert ds.meta['scene_distribution']['far_share'] == 0.5
+    assert ds.meta['scene_distribution']['far_gap_m'] == FAR_GAP_M
+    with pytest.raises(ValueError, match='far-share'):
+        make_plan(CFG, 18, 18, seed=4, far_share=1.5)
 
 
 def test_contact_record_agrees_with_the_images(small):

@@ -88,7 +88,7 @@ def _pretrain(args) -> int:
     s = PretrainSettings.for_arch(args.arch, **{k: getattr(args, k) for k in (
         'samples', 'scenes', 'seed', 'max_steps', 'batch_size', 'lr', 'eval_every',
         'patience', 'threads', 'workers', 'keypoint_steps', 'keypoint_scene_batch',
-        'toward_share', 'sparse_share', 'outline', 'supersample')})
+        'toward_share', 'sparse_share', 'far_share', 'outline', 'supersample')})
     out = args.out or f'models/{args.arch}_stereo_gray'
     print(json.dumps(pretrain(s, out, args.work, progress=not args.quiet)))
     return 0
@@ -184,7 +184,7 @@ def register(sub) -> None:
                       ('batch-size', int), ('lr', float),
                       ('eval-every', int), ('patience', int), ('threads', int),
                       ('toward-share', float), ('sparse-share', float),
-                      ('supersample', supersample_arg)):
+                      ('far-share', float), ('supersample', supersample_arg)):
         p.add_argument(f'--{flag}', type=typ, default=None,
                        help=f'default {getattr(d, flag.replace("-", "_"))} (ours)')
     p.add_argument('--workers', type=int, default=None,

@@ -79,7 +79,7 @@ def _simulate(args) -> int:
         raise ValueError('--views stereo needs two cameras in the config')
     scenes = load_session(args.session) if args.session else args.scenes
     plan = make_plan(cfg, args.samples, scenes, args.seed, toward_share=args.toward_share,
-                     sparse_share=args.sparse_share)
+                     sparse_share=args.sparse_share, far_share=args.far_share)
     ds, summary = generate(cfg, plan, args.out, views, size=args.size or cfg.dataset.image_size,
                            gray=not args.rgb and cfg.dataset.gray, workers=args.workers,
                            supersample=args.supersample,
@@ -134,6 +134,9 @@ def register(sub) -> None:
     p.add_argument('--sparse-share', type=float, default=SPARSE_SHARE,
                    help='share of sparse actuations: one chamber on, or one per segment, the '
                         f'rest at zero (0: none; default {SPARSE_SHARE})')
+    p.add_argument('--far-share', type=float, default=0.0,
+                   help='share of random placements beyond reach (gap 10-25 mm instead of '
+                        '1-10 mm; default 0)')
     p.add_argument('--workers', type=int, default=0,
                    help='processes (default 0: all cores; 1: no worker processes)')
     p.add_argument('--size', type=int, default=0, help='image size (default: config)')

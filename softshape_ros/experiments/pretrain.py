@@ -42,6 +42,7 @@ class PretrainSettings:
     keypoint_scene_batch: int = 0   # tube: whole placements per keypoint batch (0: rows)
     toward_share: float = TOWARD_SHARE  # the simulated actuations (sim.generate.make_plan)
     sparse_share: float = SPARSE_SHARE
+    far_share: float = 0.0          # placements beyond reach (make_plan)
     outline: bool = False           # tube: the learned outline (TubeNet(outline=True))
     # The simulated images' samples per pixel a side (0: the camera's own pixels; several:
     # a mix, each placement rendered with one).
@@ -77,7 +78,7 @@ def simulated_dataset(settings: PretrainSettings, work, progress: bool = True):
     cfg = load_rig_config()
     key = {k: v for k, v in asdict(settings).items()
            if k in ('samples', 'scenes', 'views', 'seed', 'toward_share', 'sparse_share',
-                    'supersample')}
+                    'far_share', 'supersample')}
     key['views'] = list(key['views'])
     if isinstance(key['supersample'], (tuple, list)):
         key['supersample'] = list(key['supersample'])
@@ -86,7 +87,8 @@ def simulated_dataset(settings: PretrainSettings, work, progress: bool = True):
     if marker.is_file() and json.loads(marker.read_text()) == key:
         return load_dataset(path)
     plan = make_plan(cfg, settings.samples, settings.scenes, settings.seed,
-                     toward_share=settings.toward_share, sparse_share=settings.sparse_share)
+                     toward_share=settings.toward_share, sparse_share=settings.sparse_share,
+                     far_share=settings.far_share)
     generate(cfg, plan, path, views=list(settings.views), workers=settings.workers,
              supersample=settings.supersample,
              overwrite=True, progress=progress, source='softshape pretrain')

@@ -39,6 +39,7 @@ OBJECT_CYCLE = ('cylinder', 'ring', 'prism')
 MIN_GAP_M = 0.001           # object surface to robot surface at rest: clear of the robot,
 MAX_GAP_M = 0.010           # ... within reach of its bending,
 GAP_POWER = 2.0             # ... near placements more often: gap = MIN + (MAX - MIN) u^2
+FAR_GAP_M = 0.025           # far placements (make_plan's far_share): gap MAX..FAR, uniform
 TOWARD_SHARE = 0.7          # actuations drawn to bend towards the object
 TOWARD_WINDOW_RAD = math.radians(30.0)
 # Sparse actuations, one chamber on or one per segment and the rest at zero, are corners of
@@ -56,13 +57,21 @@ SHAPE_KEYPOINTS = 16        # backbone points per view in the shape record
 _THREAD_VARS = ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS')
 
 
-def random_scene(scene_id: int, kind: str, rng: np.random.Generator, cfg: RigConfig) -> Scene:
-    """Place one object of ``kind`` next to the robot at a random azimuth, gap and height."""
+def random_scene(scene_id: int, kind: str, rng: np.random.Generator, cfg: RigConfig,
+                 far: bool = False) -> Scene:
+    """
+    Place one object of ``kind`` next to the robot at a random azimuth, gap and height.
+
+    ``far``: the gap drawn beyond the robot's reach instead (MAX_GAP_M..FAR_GAP_M, uniform),
+    from the same draws of ``rng``.
+    """
     r_robot = max(s.radius_m for s in cfg.robot.segments)
     base = np.asarray(cfg.robot.base_position_m, dtype=float)
     length = cfg.robot.total_length_m
     az = rng.uniform(0.0, 2 * math.pi)
-    gap = MIN_GAP_M + (MAX_GAP_M - MIN_GAP_M) * rng.uniform() ** GAP_POWER
+    u = rng.uniform()
+    gap = (MAX_GAP_M + (FAR_GAP_M - MAX_GAP_M) * u if far
+           else MIN_GAP_M + (MAX_GAP_M - MIN_GAP_M) * u ** GAP_POWER)
     radial = np.array([math.cos(az), math.sin(az), 0.0])
     z = base[2] - length * rng.uniform(0.35, 0.85)
     if kind == 'cylinder':
@@ -200,6 +209,7 @@ class Plan:
     seed: int
     toward: np.ndarray | None = None    # (N,) bool: drawn to bend towards the object
     sparse: np.ndarray | None = None    # (N,) bool: sparse (sparse_pressures)
+    far_share: float = 0.0              # the share of random scenes placed beyond reach
 
     def chunks(self, size: int = CHUNK) -> list[Chunk]:
         """Cut each scene's rows into near-equal chunks of at most ``size`` samples."""
@@ -218,23 +228,30 @@ class Plan:
 
 
 def make_plan(cfg: RigConfig, samples: int, scenes, seed: int,
-              toward_share: float = TOWARD_SHARE, sparse_share: float = SPARSE_SHARE) -> Plan:
+              toward_share: float = TOWARD_SHARE, sparse_share: float = SPARSE_SHARE,
+              far_share: float = 0.0) -> Plan:
     """
     Draw scenes (an int: how many random ones; or a list of Scene) and actuations.
 
     The sparse rows are drawn last and replace their rows' actuations (a toward row stays
-    one, now sparse), so every other row is what ``sparse_share=0`` draws.
+    one, now sparse), so every other row is what ``sparse_share=0`` draws. A share
+    ``far_share`` of random scenes is placed beyond reach (``random_scene(far=True)``),
+    chosen from a stream of its own: the other scenes and all actuations are those of
+    ``far_share=0``.
     """
     if samples < 1:
         raise ValueError(f'--samples must be >= 1, got {samples}')
-    for name, share in (('toward', toward_share), ('sparse', sparse_share)):
+    for name, share in (('toward', toward_share), ('sparse', sparse_share),
+                        ('far', far_share)):
         if not 0.0 <= share <= 1.0:
             raise ValueError(f'--{name}-share must be within [0, 1], got {share}')
     rng = np.random.default_rng(seed)
     if isinstance(scenes, int):
         if scenes < 1:
             raise ValueError(f'--scenes must be >= 1, got {scenes}')
-        scene_list = [random_scene(i, OBJECT_CYCLE[i % 3], rng, cfg) for i in range(scenes)]
+        far = np.random.default_rng([seed, 5]).uniform(0.0, 1.0, scenes) < far_share
+        scene_list = [random_scene(i, OBJECT_CYCLE[i % 3], rng, cfg, bool(far[i]))
+                      for i in range(scenes)]
     else:
         scene_list = list(scenes)
         if not scene_list:
@@ -258,7 +275,7 @@ def make_plan(cfg: RigConfig, samples: int, scenes, seed: int,
         rows = np.nonzero(sparse & toward & (sample_scene == si))[0]
         if len(rows):
             pressures[rows] = sparse_pressures(rng, len(rows), cfg, _azimuth(scene, cfg))
-    return Plan(scene_list, sample_scene, pressures, seed, toward, sparse)
+    return Plan(scene_list, sample_scene, pressures, seed, toward, sparse, far_share)
 
 
 # -- the contact record of one equilibrium ------------------------------------------------
@@ -567,6 +584,7 @@ def generate(cfg: RigConfig, plan: Plan, out, views, size: int = 64, gray: bool 
     summary = dict(tally.summary(), toward_share=float(np.mean(toward)),
                    sparse_share=float(np.mean(sparse)))
     distribution = {'min_gap_m': MIN_GAP_M, 'max_gap_m': MAX_GAP_M, 'gap_power': GAP_POWER,
+                    'far_gap_m': FAR_GAP_M, 'far_share': plan.far_share,
                     'toward_window_deg': math.degrees(TOWARD_WINDOW_RAD), 'chunk': chunk,
                     'sparse_pair_share': SPARSE_PAIR_SHARE}
     ds = writer.close(
