@@ -209,7 +209,7 @@ class Plan:
     seed: int
     toward: np.ndarray | None = None    # (N,) bool: drawn to bend towards the object
     sparse: np.ndarray | None = None    # (N,) bool: sparse (sparse_pressures)
-    far_share: float = 0.0              # the share of random scenes placed beyond reach
+    far_share: float = 0.0              # share of random scenes beyond reach (0: given ones)
 
     def chunks(self, size: int = CHUNK) -> list[Chunk]:
         """Cut each scene's rows into near-equal chunks of at most ``size`` samples."""
@@ -275,7 +275,8 @@ def make_plan(cfg: RigConfig, samples: int, scenes, seed: int,
         rows = np.nonzero(sparse & toward & (sample_scene == si))[0]
         if len(rows):
             pressures[rows] = sparse_pressures(rng, len(rows), cfg, _azimuth(scene, cfg))
-    return Plan(scene_list, sample_scene, pressures, seed, toward, sparse, far_share)
+    return Plan(scene_list, sample_scene, pressures, seed, toward, sparse,
+                far_share if isinstance(scenes, int) else 0.0)
 
 
 # -- the contact record of one equilibrium ------------------------------------------------
