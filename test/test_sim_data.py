@@ -49,13 +49,7 @@ def test_default_distribution_touches_in_most_samples(small):
         touched = c.touching[np.array(kinds) == kind]
         assert touched.any(), kind                         # every shape gets touched
     # Several distances: object surfaces from a fraction of a mm to several mm away.
-    rig = SimRig(CFG)
-    gaps = []
-    for sc in plan.scenes:
-        rig.set_scene(sc)
-        st = rig.solve([0.0] * 6)
-        gaps.append(min(float(o.sdf(st.backbone_m)[0].min() - st.radii_m.max())
-                        for o in rig.obstacles))
+    gaps = list(rest_gaps(plan.scenes))
     assert min(gaps) >= -1e-9 and max(gaps) - min(gaps) > 0.3 * MAX_GAP_M, gaps
 
 
