@@ -30,6 +30,28 @@ def test_distance_sweep_reports_the_objects_push(tmp_path):
     assert not res['within_tolerance']
     assert all(np.isfinite(r['rmse']) and 0 <= r['intrusion'] <= 1 for r in rows)
     assert (tmp_path / 'fig4c.png').stat().st_size > 1000
+    # The same contact turned about the robot: 12 setups, Fig. 4(c)'s first, each bend
+    # with the cylinder 30 deg beside it. The robot is symmetric, so every setup touches
+    # where Fig. 4(c) does, and its main view is Fig. 4(c)'s rows.
+    t = res['turned']
+    assert len(t['setups']) == 12
+    first = t['setups'][0]
+    assert (first['bend_deg'], first['cylinder_deg']) == (30.0, 0.0)
+    assert [r['shift_px_simulated'][0] for r in first['rows']] == \
+        [round(r['tip_shift_px_simulated'], 3) for r in rows]
+    bends = sorted({round(s['bend_deg']) for s in t['setups']})
+    assert bends == [-150, -90, -30, 30, 90, 150]
+    for s in t['setups']:
+        assert abs((s['cylinder_deg'] - s['bend_deg'] + 180) % 360 - 180) == 30.0
+        assert [r['touching'] for r in s['rows']] == [r['touching'] for r in rows]
+    assert [p['touching_share'] for p in t['per_distance']] == \
+        [float(r['touching']) for r in rows]
+    errors = [r['shift_error_px'] for s in t['setups'] for r in s['rows']]
+    assert all(e is None or e >= 0 for e in errors)
+    assert t['within_tolerance_share'] < 1.0
+    assert max(p['worst_shift_error_px'] for p in t['per_distance']) == \
+        max(e for e in errors if e is not None)
+    assert (tmp_path / 'fig4c_turned.png').stat().st_size > 1000
 
 
 def test_distance_sweep_cli_writes_numbers_and_figure(tmp_path, capsys):

@@ -41,66 +41,126 @@ class SweepRow:
     intrusion: float
 
 
+@dataclass(frozen=True)
+class Setup:
+    """One bend and where the cylinder stands from it (bearings about the robot's axis, deg)."""
+
+    bend_deg: float                 # the free tip's bearing under ``actuation``
+    cylinder_deg: float             # the line the cylinder is moved along
+    actuation: np.ndarray           # 6 pressures (Pa)
+
+
+@dataclass(frozen=True)
+class SetupRow:
+    """One distance of one :class:`Setup`: the pushes per view (px; None: no tip seen)."""
+
+    distance_m: float
+    touching: bool
+    shift_px_simulated: list
+    shift_px_predicted: list
+    shift_error_px: float | None    # the worst view's; None if a view lost the tip
+
+
 def _images(rig, state, pred, supersample) -> np.ndarray:
     r = rig.render_inputs(state, size=pred.image_size, gray=pred.channels == 1,
                           supersample=supersample, cameras=pred.views)
     return np.stack([r[v] for v in pred.views])
 
 
-def _actuation(rig, lim) -> np.ndarray:
-    """Return the chamber pair at 80 % that swings the free tip furthest towards +x."""
-    best, act = -np.inf, None
-    for k in range(3):
-        p = np.zeros(6)
+def _bend(rig, lim, pairs) -> tuple[np.ndarray, float]:
+    """Return the chamber ``pairs`` at 80 % and the bearing (deg) of the free tip they give."""
+    p = np.zeros(6)
+    for k in pairs:
         p[k], p[k + 3] = 0.8 * lim[k], 0.8 * lim[k + 3]
-        rig.set_scene(None)
-        x = rig.solve(p).tip_pose[0, 3]
-        if x > best:
-            best, act = x, p
-    return act
+    rig.set_scene(None)
+    tip = rig.solve(p).tip_pose[:3, 3]
+    return p, float(np.degrees(np.arctan2(tip[1], tip[0])))
+
+
+def setups(rig, lim) -> list[Setup]:
+    """
+    Return Fig. 4(c)'s setup first, then the same geometry turned about the robot's axis.
+
+    Fig. 4(c): the chamber pair whose free tip swings furthest towards +x, the cylinder moved
+    along +x (30 deg beside the bend). The rest: each of the six bends (one chamber pair, or
+    two, at 80 %: bearings 60 deg apart) with the cylinder 30 deg to either side of it. The
+    robot is symmetric, so every setup is the same contact seen from another angle: the
+    simulated push is the same, only the cameras see it differently.
+    """
+    bends = [_bend(rig, lim, pairs) for pairs in ((0,), (1,), (2,), (0, 1), (1, 2), (2, 0))]
+    main = max(bends[:3], key=lambda b: np.cos(np.radians(b[1])))
+    out = [Setup(main[1], 0.0, main[0])]
+    for p, deg in bends:
+        for side in (-30.0, 30.0):
+            cyl = (deg + side + 180.0) % 360.0 - 180.0
+            if not (p is main[0] and abs(cyl) < 1e-6):
+                out.append(Setup(deg, round(cyl, 6), p))
+    return out
+
+
+def _sweep(rig, pred, setup: Setup, distances, supersample):
+    """Simulate and predict one setup: initial, target, predicted, free (N x V x C x S x S)."""
+    rig.set_scene(None)
+    free = _images(rig, rig.solve(setup.actuation), pred, supersample)
+    initial, target, touching = [], [], []
+    c, s = np.cos(np.radians(setup.cylinder_deg)), np.sin(np.radians(setup.cylinder_deg))
+    for i, d in enumerate(distances):
+        rig.set_scene(Scene(id=1000 + i, object='cylinder',
+                            position_m=(round(d * c, 9), round(d * s, 9), 0.02),
+                            dims=dict(CYLINDER)))
+        initial.append(_images(rig, rig.solve(np.zeros(6)), pred, supersample))
+        st = rig.solve(setup.actuation)
+        target.append(_images(rig, st, pred, supersample))
+        touching.append(any(k.gap_m < 0 and not k.ridge for k in st.contacts))
+    initial, target = np.stack(initial), np.stack(target)
+    predicted = pred.predict_batch(initial, [setup.actuation] * len(distances))
+    return initial, target, predicted, np.repeat(free[None], len(target), 0), touching
+
+
+def _shifts(sil, target, predicted, free) -> tuple[np.ndarray, np.ndarray]:
+    """N x V tip pushes from the free shape's tip (px), simulated and predicted (NaN: none)."""
+    t, p, f = sil.tips(target), sil.tips(predicted), sil.tips(free)
+    return np.linalg.norm(t - f, axis=-1), np.linalg.norm(p - f, axis=-1)
+
+
+def _px(v) -> float | None:
+    return None if not np.isfinite(v) else round(float(v), 3)
 
 
 def distance_sweep(checkpoint, path=None, distances=DISTANCES_M,
-                   supersample: int = SUPERSAMPLE) -> dict:
+                   supersample: int = SUPERSAMPLE, turned: bool = True) -> dict:
     """
     Run the sweep for ``checkpoint``; draw the panels to ``path`` (PNG) if given.
 
     ``supersample``: how the images are rendered (``SimRig.render_inputs``; 0: the camera's
     own pixels). A model should not care; one that learned a rendering's edges does.
+    ``turned``: also run the same contact turned about the robot (:func:`setups`; one
+    actuation is a thin check: a model's answer there swings by a pixel or two between
+    recipes), with a second figure beside ``path`` (``*_turned.png``).
 
     Returns the actuation, one :class:`SweepRow` per distance (as dicts) and the worst
-    shift error over the distances.
+    shift error over the distances (Fig. 4(c), main view); with ``turned`` also
+    ``turned``: every setup's :class:`SetupRow` per distance (every view), and per distance
+    the mean and worst shift error over setups and views and the share within tolerance.
     """
     from softshape_ros.sim.rig import SimRig
 
     pred = Predictor.from_checkpoint(checkpoint)
     rig = SimRig(load_rig_config())
-    act = _actuation(rig, np.asarray(pred.max_pressure_pa))
-    rig.set_scene(None)
-    free = _images(rig, rig.solve(act), pred, supersample)
-    initial, target, touching = [], [], []
-    for i, d in enumerate(distances):
-        rig.set_scene(Scene(id=1000 + i, object='cylinder', position_m=(d, 0.0, 0.02),
-                            dims=dict(CYLINDER)))
-        initial.append(_images(rig, rig.solve(np.zeros(6)), pred, supersample))
-        st = rig.solve(act)
-        target.append(_images(rig, st, pred, supersample))
-        touching.append(any(c.gap_m < 0 and not c.ridge for c in st.contacts))
-    initial, target = np.stack(initial), np.stack(target)
-    predicted = pred.predict_batch(initial, [act] * len(distances))
+    lim = np.asarray(pred.max_pressure_pa)
+    plan = setups(rig, lim) if turned else setups(rig, lim)[:1]
+    runs = [_sweep(rig, pred, s, distances, supersample) for s in plan]
+    initial, target, predicted, free, touching = runs[0]
     sil = RobotSilhouette.fit(initial)
-    free = np.repeat(free[None], len(target), 0)
-    tips = {name: sil.tips(a) for name, a in
-            (('target', target), ('predicted', predicted), ('free', free))}
+    sim, got = (a[:, 0] for a in _shifts(sil, target, predicted, free))
     objects = sil.object_mask(initial)
     rows = []
     for i, d in enumerate(distances):
-        sim, got = (float(np.linalg.norm(tips[k][i, 0] - tips['free'][i, 0]))
-                    for k in ('target', 'predicted'))
         p_sil, t_sil = sil.mask(predicted[i:i + 1]), sil.mask(target[i:i + 1])
-        rows.append(SweepRow(d, bool(touching[i]), sim, got, abs(got - sim),
-                             rmse(predicted[i], target[i]), iou(p_sil, t_sil),
-                             intrusion(p_sil, t_sil, objects[i:i + 1])))
+        rows.append(SweepRow(d, bool(touching[i]), float(sim[i]), float(got[i]),
+                             abs(float(got[i] - sim[i])), rmse(predicted[i], target[i]),
+                             iou(p_sil, t_sil), intrusion(p_sil, t_sil, objects[i:i + 1])))
+    act = plan[0].actuation
     if path is not None:
         prediction_panels(initial, target, predicted, pred.views, path,
                           title=f'same actuation {np.round(act / 1000).astype(int).tolist()} '
@@ -109,12 +169,81 @@ def distance_sweep(checkpoint, path=None, distances=DISTANCES_M,
                                       f'{r.tip_shift_px_simulated:.0f} px, model '
                                       f'{r.tip_shift_px_predicted:.0f}' for r in rows])
     worst = max(r.shift_error_px for r in rows)
-    return {'checkpoint': str(checkpoint), 'supersample': supersample,
-            'actuation_pa': act.tolist(),
-            'rows': [asdict(r) for r in rows], 'worst_shift_error_px': worst,
-            'within_tolerance': bool(worst <= SHIFT_TOLERANCE_PX),
-            'tolerance_px': SHIFT_TOLERANCE_PX,
-            'figure': None if path is None else str(path)}
+    res = {'checkpoint': str(checkpoint), 'supersample': supersample,
+           'actuation_pa': act.tolist(),
+           'rows': [asdict(r) for r in rows], 'worst_shift_error_px': worst,
+           'within_tolerance': bool(worst <= SHIFT_TOLERANCE_PX),
+           'tolerance_px': SHIFT_TOLERANCE_PX,
+           'figure': None if path is None else str(path)}
+    if turned:
+        res['turned'] = _turned(plan, runs, distances, pred.views, path)
+    return res
+
+
+def _turned(plan, runs, distances, views, path) -> dict:
+    """Score every setup (each with its own segmentation, as Fig. 4(c)'s); summarise."""
+    out, errors, pushes = [], [], []         # errors: setups x distances x views
+    for setup, (initial, target, predicted, free, touching) in zip(plan, runs):
+        sim, got = _shifts(RobotSilhouette.fit(initial), target, predicted, free)
+        pushes.append((sim, got))
+        err = np.abs(got - sim)              # N x V; NaN where a tip was not found
+        errors.append(err)
+        out.append({'bend_deg': round(setup.bend_deg, 3),
+                    'cylinder_deg': round(setup.cylinder_deg, 3),
+                    'actuation_pa': setup.actuation.tolist(),
+                    'rows': [asdict(SetupRow(d, bool(touching[i]),
+                                             [_px(v) for v in sim[i]],
+                                             [_px(v) for v in got[i]],
+                                             _px(np.max(err[i]))))
+                             for i, d in enumerate(distances)]})
+    err = np.stack(errors)                   # setups x distances x views
+    ok = np.isfinite(err) & (err <= SHIFT_TOLERANCE_PX)
+    touch = np.array([[r['touching'] for r in s['rows']] for s in out])
+    per = [{'distance_m': d, 'touching_share': float(touch[:, i].mean()),
+            'mean_shift_error_px': _px(np.nanmean(err[:, i])),
+            'worst_shift_error_px': _px(np.nanmax(err[:, i])),
+            'within_tolerance_share': round(float(ok[:, i].mean()), 4),
+            'tips_missing': int((~np.isfinite(err[:, i])).sum())}
+           for i, d in enumerate(distances)]
+    figure = None
+    if path is not None:
+        figure = Path(path).with_name(Path(path).stem + '_turned.png')
+        _turned_figure(pushes, distances, views, figure)
+    return {'setups': out, 'per_distance': per,
+            'mean_shift_error_px': _px(np.nanmean(err)),
+            'within_tolerance_share': round(float(ok.mean()), 4),
+            'figure': None if figure is None else str(figure)}
+
+
+def _turned_figure(pushes, distances, views, path) -> None:
+    """Predicted against simulated push, a point per setup and view, coloured by distance."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    fig, axes = plt.subplots(1, len(views), figsize=(4.2 * len(views), 4), squeeze=False)
+    colours = plt.cm.viridis(np.linspace(0, 0.9, len(distances)))
+    sims = pushes
+    top = max(2.0, np.nanmax([np.nanmax(np.r_[s, g]) for s, g in sims]) + 1)
+    for j, view in enumerate(views):
+        ax = axes[0, j]
+        ax.fill_between([0, top], [-SHIFT_TOLERANCE_PX, top - SHIFT_TOLERANCE_PX],
+                        [SHIFT_TOLERANCE_PX, top + SHIFT_TOLERANCE_PX], color='0.9',
+                        label=f'within {SHIFT_TOLERANCE_PX} px')
+        ax.plot([0, top], [0, top], color='0.5', lw=0.8)
+        for i, d in enumerate(distances):
+            ax.scatter([s[i, j] for s, _ in sims], [g[i, j] for _, g in sims], s=14,
+                       color=colours[i], label=f'{d * 1000:.0f} mm')
+        ax.set_xlim(0, top)
+        ax.set_ylim(0, top)
+        ax.set_xlabel('simulated tip push (px)')
+        ax.set_ylabel('predicted tip push (px)')
+        ax.set_title(f'{view} view', fontsize=9)
+        ax.legend(fontsize=7, loc='upper left')
+    fig.suptitle(f'Fig. 4(c) turned about the robot: {len(pushes)} setups '
+                 '(bend, cylinder 30 deg beside it)', fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
 
 
 def run(checkpoint, out, supersample: int = SUPERSAMPLE) -> dict:
