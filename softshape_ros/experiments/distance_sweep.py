@@ -5,6 +5,8 @@ The simulator gives the truth: at each distance whether the robot touches the cy
 how far its tip is pushed from where the free robot would put it (px, main view). The model
 sees only the initial image change with the distance, so a model that learned contact
 tracks the push; one that did not draws the free shape through the cylinder every time.
+One actuation is a thin check, so the same contact is also run turned about the robot
+(:func:`setups`) and scored in every view.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from __future__ import annotations
 import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -98,8 +101,18 @@ def setups(rig, lim) -> list[Setup]:
     return out
 
 
-def _sweep(rig, pred, setup: Setup, distances, supersample):
-    """Simulate and predict one setup: initial, target, predicted, free (N x V x C x S x S)."""
+class SweepImages(NamedTuple):
+    """One setup's images, a row per distance (N x V x C x S x S), and the simulator's contact."""
+
+    initial: np.ndarray
+    target: np.ndarray
+    predicted: np.ndarray
+    free: np.ndarray                # the free robot under the same actuation, repeated
+    touching: list
+
+
+def _sweep(rig, pred, setup: Setup, distances, supersample) -> SweepImages:
+    """Simulate and predict one setup at every distance."""
     rig.set_scene(None)
     free = _images(rig, rig.solve(setup.actuation), pred, supersample)
     initial, target, touching = [], [], []
@@ -114,7 +127,8 @@ def _sweep(rig, pred, setup: Setup, distances, supersample):
         touching.append(any(k.gap_m < 0 and not k.ridge for k in st.contacts))
     initial, target = np.stack(initial), np.stack(target)
     predicted = pred.predict_batch(initial, [setup.actuation] * len(distances))
-    return initial, target, predicted, np.repeat(free[None], len(target), 0), touching
+    return SweepImages(initial, target, predicted, np.repeat(free[None], len(target), 0),
+                       touching)
 
 
 def _shifts(sil, target, predicted, free) -> tuple[np.ndarray, np.ndarray]:
@@ -148,7 +162,7 @@ def distance_sweep(checkpoint, path=None, distances=DISTANCES_M,
     pred = Predictor.from_checkpoint(checkpoint)
     rig = SimRig(load_rig_config())
     lim = np.asarray(pred.max_pressure_pa)
-    plan = setups(rig, lim) if turned else setups(rig, lim)[:1]
+    plan = setups(rig, lim)[:None if turned else 1]
     runs = [_sweep(rig, pred, s, distances, supersample) for s in plan]
     initial, target, predicted, free, touching = runs[0]
     sil = RobotSilhouette.fit(initial)
@@ -183,8 +197,10 @@ def distance_sweep(checkpoint, path=None, distances=DISTANCES_M,
 def _turned(plan, runs, distances, views, path) -> dict:
     """Score every setup (each with its own segmentation, as Fig. 4(c)'s); summarise."""
     out, errors, pushes = [], [], []         # errors: setups x distances x views
-    for setup, (initial, target, predicted, free, touching) in zip(plan, runs):
-        sim, got = _shifts(RobotSilhouette.fit(initial), target, predicted, free)
+    for setup, run in zip(plan, runs):
+        sim, got = _shifts(RobotSilhouette.fit(run.initial), run.target, run.predicted,
+                           run.free)
+        touching = run.touching
         pushes.append((sim, got))
         err = np.abs(got - sim)              # N x V; NaN where a tip was not found
         errors.append(err)
