@@ -60,7 +60,7 @@ def test_the_learned_outline_draws_the_tube_that_far_out():
     assert float(disk[1].sum()) == pytest.approx(math.pi * 5.0 ** 2, rel=0.02)
     # 6 px from the centre: on the keypoints' outline, half covered by the plain ramp,
     # inside the drawn one 0.5 px further out (and outside the one 1 px further in).
-    plain = coverage(field.sd).view(2, 64, 64)
+    plain = coverage(field.sd).detach().view(2, 64, 64)
     assert float(plain[0, 30, 26]) == pytest.approx(0.5, abs=1e-3)
     assert float(disk[0, 30, 26]) == pytest.approx(1.0) and float(disk[1, 30, 26]) == 0.0
     cov[:, 0].sum().backward()
@@ -243,7 +243,7 @@ def test_the_scene_encoder_learns_to_see_the_placement(simulated):
     cfg = TrainConfig(arch='tube', loss='keypoints', batch_size=16, max_steps=150,
                       eval_every=50, patience=100, seed=0, threads=1)
     idx = np.arange(len(ds))
-    x = torch.from_numpy(np.asarray(ds.initial).reshape(len(ds), -1, 64, 64)).float() / 255
+    x = torch.from_numpy(np.array(ds.initial).reshape(len(ds), -1, 64, 64)).float() / 255
     want = scene_targets(ds, idx)
     pos = [SCENE_FEATURES.index(k) for k in ('x_mm', 'y_mm', 'z_mm')]
     spread = float((want[:, pos] - want[:, pos].mean(0)).abs().mean())
