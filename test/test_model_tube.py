@@ -350,7 +350,7 @@ def test_short_tube_training_beats_copy_on_touching_samples(simulated, tmp_path)
     # The learned outline asked for (softshape train --outline), moved from its zero start
     # by the image terms; a fine-tune that asks for another architecture is refused.
     assert cfg_loaded['arch_params']['outline'] is True
-    assert float(model.shader.outline.abs().min()) > 1e-3, model.shader.outline
+    assert float(model.shader.outline.detach().abs().min()) > 1e-3, model.shader.outline
     with pytest.raises(CheckpointError, match='outline'):
         train(ds, TrainConfig(arch='tube', init=str(tmp_path / 'ck'), max_steps=1,
                               arch_params={'outline': False}), progress=False)
