@@ -117,3 +117,17 @@ def test_pretrain_tube_runs_its_two_phases_and_reuses_the_data(tmp_path, capsys)
     assert meta['rendering']['supersample'] == [0, 3]
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])[
         'settings']['supersample'] == [0, 3]
+    # A reader phase first and a heads phase last: each starts from the one before.
+    assert cli(args + ['--reader-steps', '2', '--head-steps', '3', '--head-batch', '8']) == 0
+    out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert (out['reader_steps'], out['keypoint_steps'], out['head_steps']) == (2, 3, 3)
+    work = tmp_path / 'work'
+    chain = [load_checkpoint(work / f)[1]['training'] for f in (
+        'tube_keypoints_reader', 'tube_keypoints', 'tube_keypoints_heads')]
+    assert [c['loss'] for c in chain] == ['scene', 'keypoints', 'keypoints']
+    assert [c['freeze_scene'] for c in chain] == [False, False, True]
+    assert chain[2]['batch_size'] == 8
+    assert [c['init_from'] for c in chain[1:]] == [str(work / 'tube_keypoints_reader'),
+                                                   str(work / 'tube_keypoints')]
+    _, cfg = load_checkpoint(tmp_path / 'ck')
+    assert cfg['training']['init_from'] == str(work / 'tube_keypoints_heads')

@@ -333,6 +333,51 @@ def test_scene_batches_hold_whole_placements_and_encode_each_once(simulated, mon
         train(ds, TrainConfig(arch='tube', scene_batch=-1), progress=False)
 
 
+def test_a_reader_phase_then_the_heads_on_frozen_codes(simulated, tmp_path, monkeypatch):
+    """loss 'scene' trains the encoder alone; freeze_scene then trains the heads alone."""
+    from softshape_ros.model.losses import TubeLoss
+    from softshape_ros.model.tube_net import SceneEncoder
+    ds = load_dataset(simulated.path)
+    base = dict(arch='tube', max_steps=30, eval_every=15, patience=100, seed=0, threads=1,
+                split='scene', batch_size=16)
+    start = build_network('tube', 1, 1)
+
+    def parts(net):
+        kn = net.keypoints
+        return ({k: v.clone() for k, v in kn.scene.state_dict().items()},
+                {k: v.clone() for k, v in [*kn.free.state_dict().items(),
+                                           *kn.correct.state_dict().items()]})
+
+    def same(a, b):
+        return all(torch.equal(a[k], b[k]) for k in a)
+
+    reader = train(ds, TrainConfig(loss='scene', **base), out=tmp_path / 'reader',
+                   progress=False)
+    assert reader.best_val_mse is None                       # nothing drawn
+    assert reader.history[-1]['val_loss'] < reader.history[0]['val_loss']
+    enc, heads = parts(reader.model)
+    torch.manual_seed(0)
+    _, heads0 = parts(build_network('tube', 1, 1))
+    assert same(heads, heads0) and not same(enc, parts(start)[0])   # only the encoder moved
+    # The heads on frozen codes: every distinct rest image encoded once, before the steps.
+    seen = []
+    forward = SceneEncoder.forward
+    monkeypatch.setattr(SceneEncoder, 'forward',
+                        lambda self, image: seen.append(len(image)) or forward(self, image))
+    res = train(ds, TrainConfig(loss='keypoints', freeze_scene=True, init=str(tmp_path / 'reader'),
+                                **base), progress=False)
+    assert sum(seen) == len(np.unique(np.asarray(ds.initial).reshape(len(ds), -1), axis=0))
+    enc2, heads2 = parts(res.model)
+    assert same(enc2, enc) and not same(heads2, heads)               # only the heads moved
+    assert res.history[-1]['val_loss'] < res.history[0]['val_loss']
+    assert res.config['training']['freeze_scene'] is True
+    with pytest.raises(ValueError, match='freeze_scene'):
+        train(ds, TrainConfig(loss='tube', freeze_scene=True, **base), progress=False)
+    with pytest.raises(ValueError, match='placements recorded'):
+        x = torch.zeros(2, 1, 64, 64)
+        TubeLoss(scene_only=True)(start, x, torch.zeros(2, 6), x)
+
+
 def test_short_tube_training_beats_copy_on_touching_samples(simulated, tmp_path):
     from softshape_ros.model.evaluate import predict_rows
     from softshape_ros.model.metrics import evaluate_arrays

@@ -28,6 +28,7 @@ def _train(args) -> int:
                       eval_every=args.eval_every, patience=args.patience,
                       threads=args.threads, loss=args.loss, init=args.init,
                       min_steps=args.min_steps, scene_batch=args.scene_batch,
+                      freeze_scene=args.freeze_scene,
                       arch_params={'outline': True} if args.outline else {})
     res = train(ds, cfg, out=args.out, indices=rows, progress=not args.quiet)
     summary = {'checkpoint': args.out, 'steps': res.steps,
@@ -88,6 +89,7 @@ def _pretrain(args) -> int:
     s = PretrainSettings.for_arch(args.arch, **{k: getattr(args, k) for k in (
         'samples', 'scenes', 'seed', 'max_steps', 'batch_size', 'lr', 'eval_every',
         'patience', 'threads', 'workers', 'keypoint_steps', 'keypoint_scene_batch',
+        'reader_steps', 'head_steps', 'head_batch',
         'toward_share', 'sparse_share', 'far_share', 'outline', 'supersample')})
     out = args.out or f'models/{args.arch}_stereo_gray'
     print(json.dumps(pretrain(s, out, args.work, progress=not args.quiet)))
@@ -118,6 +120,9 @@ def register(sub) -> None:
     p.add_argument('--scene-batch', type=int, default=0,
                    help='N > 0: batches of N whole placements (all their rows) instead of '
                         '--batch-size rows; tube encodes each placement once a batch')
+    p.add_argument('--freeze-scene', action='store_true',
+                   help='tube, --loss keypoints: the scene encoder frozen, each placement '
+                        'encoded once; only the keypoint heads train (fast)')
     p.add_argument('--outline', action='store_true', help=OUTLINE_HELP)
     p.add_argument('--lr', type=float, default=None,
                    help="Adam learning rate (default: the architecture's own, "
@@ -181,6 +186,7 @@ def register(sub) -> None:
                    help='where the simulated dataset is kept (reused when unchanged)')
     for flag, typ in (('samples', int), ('scenes', int), ('seed', int), ('max-steps', int),
                       ('keypoint-steps', int), ('keypoint-scene-batch', int),
+                      ('reader-steps', int), ('head-steps', int), ('head-batch', int),
                       ('batch-size', int), ('lr', float),
                       ('eval-every', int), ('patience', int), ('threads', int),
                       ('toward-share', float), ('sparse-share', float),

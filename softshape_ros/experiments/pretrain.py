@@ -6,8 +6,9 @@ so it starts from thousands of simulated interactions instead of its few hundred
 ones. One command rebuilds it (``make pretrain`` = ``softshape pretrain``); the simulated
 dataset is kept in ``work`` and reused when its settings did not change. Same settings and
 thread count, same weights. ``softshape pretrain --arch tube`` builds the tube model the
-same way, in two phases: the keypoint and scene terms alone (fast, nothing drawn), then
-the full loss from there (:data:`TUBE`).
+same way, in phases that draw nothing (fast: the scene term alone, the keypoint and scene
+terms, the keypoint heads on frozen codes; :func:`~softshape_ros.model.train.train_in_phases`),
+then the full loss from there (:data:`TUBE`).
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from softshape_ros.config import load_rig_config
-from softshape_ros.model.train import TrainConfig, train_in_phases
+from softshape_ros.model.train import HEAD_BATCH, TrainConfig, train_in_phases
 from softshape_ros.sim.generate import SPARSE_SHARE, TOWARD_SHARE
 
 
@@ -40,6 +41,9 @@ class PretrainSettings:
     arch: str = 'ours'
     keypoint_steps: int = 0         # tube: steps of the keypoint phase before the full loss
     keypoint_scene_batch: int = 0   # tube: whole placements per keypoint batch (0: rows)
+    reader_steps: int = 0           # tube: steps of the scene term alone, first
+    head_steps: int = 0             # tube: steps of the keypoint heads on frozen codes, last
+    head_batch: int = HEAD_BATCH    # tube: rows per batch of the heads phase
     toward_share: float = TOWARD_SHARE  # the simulated actuations (sim.generate.make_plan)
     sparse_share: float = SPARSE_SHARE
     far_share: float = 0.0          # placements beyond reach (make_plan)
@@ -107,14 +111,20 @@ def pretrain(settings: PretrainSettings, out, work, progress: bool = True) -> di
                       patience=settings.patience, threads=settings.threads,
                       arch_params={'outline': True} if settings.outline else {})
     t0 = time.perf_counter()
-    first, res = train_in_phases(ds, cfg, settings.keypoint_steps,
-                                 Path(work) / f'{settings.arch}_keypoints', out=out,
-                                 keypoint_scene_batch=settings.keypoint_scene_batch,
-                                 progress=progress, desc='pretrain')
-    steps, seen = (first.steps, first.rows_seen) if first else (0, 0)
+    phases, res = train_in_phases(ds, cfg, settings.keypoint_steps,
+                                  Path(work) / f'{settings.arch}_keypoints', out=out,
+                                  keypoint_scene_batch=settings.keypoint_scene_batch,
+                                  progress=progress, desc='pretrain',
+                                  reader_steps=settings.reader_steps,
+                                  head_steps=settings.head_steps,
+                                  head_batch=settings.head_batch)
+    seen = sum(r.rows_seen for r in phases.values())
     secs = time.perf_counter() - t0
     return {'checkpoint': str(out), 'dataset': str(ds.path), 'samples': len(ds),
-            'keypoint_steps': steps, 'steps': res.steps,
+            **{f'{key}_steps': phases[name].steps if name in phases else 0
+               for key, name in (('reader', 'reader'), ('keypoint', 'keypoints'),
+                                 ('head', 'heads'))},
+            'steps': res.steps,
             'val_rmse_255': res.val_rmse_255, 'copy_val_rmse_255': res.copy_val_rmse_255,
             'train_seconds': round(secs),
             'train_samples_per_s': round((seen + res.rows_seen) / secs, 1),

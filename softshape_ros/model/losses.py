@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-LOSSES = ('mse', 'mse_silhouette', 'huber', 'huber_silhouette', 'tube', 'keypoints')
+LOSSES = ('mse', 'mse_silhouette', 'huber', 'huber_silhouette', 'tube', 'keypoints', 'scene')
 HUBER_EDGE = 0.02       # [0, 1] units: quadratic below, linear above (5/255)
 SOFT_EDGE = 0.02       # sigmoid temperature of the soft robot mask, [0, 1] units (5/255)
 LUMA = (0.299, 0.587, 0.114)
@@ -87,14 +87,19 @@ class TubeLoss:
     term alone); ``free``: B bool, the samples touching nothing (None: unknown); ``scene``:
     B x 17 :func:`~softshape_ros.model.data.scene_targets` of the placements (None: unknown).
     ``keypoints_only``: the keypoint terms alone, nothing drawn (a fast first phase; the
-    image is then None). ``threshold``: the robot's luminance threshold ([0, 1] units; None:
-    no visibility term): inside the true tube the target shows the robot where it is
-    darker, the object where the object is in front.
+    image is then None); ``x`` may then be B x code scene codes instead of images (the
+    encoder frozen, each placement encoded once: ``TrainConfig.freeze_scene``).
+    ``scene_only``: the scene term alone (the encoder learns to read the placement before
+    anything reads its code; nothing drawn). ``threshold``: the robot's luminance threshold
+    ([0, 1] units; None: no visibility term): inside the true tube the target shows the
+    robot where it is darker, the object where the object is in front.
     """
 
     def __init__(self, weights: TubeWeights = TubeWeights(), keypoints_only: bool = False,
-                 threshold: float | None = None, channels: int = 1):
-        self.w, self.keypoints_only = weights, keypoints_only
+                 threshold: float | None = None, channels: int = 1, scene_only: bool = False):
+        if keypoints_only and scene_only:
+            raise ValueError('a tube objective is keypoints_only or scene_only, not both')
+        self.w, self.keypoints_only, self.scene_only = weights, keypoints_only, scene_only
         self.threshold, self.channels = threshold, channels
 
     def _keypoints(self, kp, free_kp, truth, free, dtype):
@@ -112,7 +117,7 @@ class TubeLoss:
         Squared error in units of the training placements' spread: under L1 the encoder
         settled on the median placement for every scene and stayed there.
         """
-        if scene is None or not self.w.scene:
+        if scene is None or described is None or not self.w.scene:
             return 0.0
         net = getattr(model, 'module', model)                # DDP wraps the network
         spread = net.keypoints.scene.spread
@@ -120,10 +125,16 @@ class TubeLoss:
 
     def __call__(self, model, x, p, t, truth=None, free=None, scene=None):
         w = self.w
+        if self.scene_only:
+            if scene is None:
+                raise ValueError('the scene loss needs the placements recorded (simulated '
+                                 'data, or bags whose session YAML describes the objects)')
+            return self._scene(model, model(x, p, parts='keypoints')[2], scene), None
         if self.keypoints_only:
             if truth is None:
                 raise ValueError('keypoint training needs a dataset with a shape record')
-            kp, free_kp, described = model(x, p, parts='keypoints')
+            # B x code: codes of a frozen encoder (no scene term); else the rest images.
+            kp, free_kp, described = model(x, p, parts='codes' if x.dim() == 2 else 'keypoints')
             return (self._keypoints(kp, free_kp, truth, free, x.dtype)
                     + self._scene(model, described, scene)), None
         out = model(x, p, truth, parts=True)

@@ -90,10 +90,10 @@ def _key(split, views, arch, size) -> str:
 
 def _fit_and_score(ds, rows, test, tc, ckpt, sil, desc, cfg: ReproConfig) -> dict:
     t0 = time.perf_counter()
-    first = None
+    phases = {}
     if tc.arch == 'tube':
         kp = cfg.tube_keypoint_steps if getattr(ds, 'shape', None) is not None else 0
-        first, res = train_in_phases(
+        phases, res = train_in_phases(
             ds, replace(tc, batch_size=cfg.tube_batch_size, eval_every=cfg.tube_eval_every),
             kp, ckpt.with_name(ckpt.name + '_keypoints'), out=ckpt,
             keypoint_scene_batch=cfg.tube_scene_batch, indices=rows, desc=desc)
@@ -105,7 +105,7 @@ def _fit_and_score(ds, rows, test, tc, ckpt, sil, desc, cfg: ReproConfig) -> dic
     m = evaluate_arrays(np.asarray(ds.initial[test]), np.asarray(ds.target[test]), p, sil,
                         touching_flags(ds, test), no_contact_why(ds))
     m.update(train_seconds=secs, steps=res.steps, val_rmse=res.val_rmse_255,
-             keypoint_steps=first.steps if first else 0)
+             keypoint_steps=phases['keypoints'].steps if 'keypoints' in phases else 0)
     return m
 
 

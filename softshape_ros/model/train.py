@@ -72,6 +72,10 @@ class TrainConfig:
     # batch_size rows. The tube model encodes each placement's rest images once per batch,
     # so its keypoint phase sees ten actuations for the cost of about one (docs/model.md).
     scene_batch: int = 0
+    # tube, keypoint loss: the scene encoder frozen, each placement encoded once before the
+    # steps, which then train only the keypoint heads (MLPs: fast, so many more rows a
+    # second; docs/model.md, "A reader first").
+    freeze_scene: bool = False
     arch_params: dict = field(default_factory=dict)
 
 
@@ -169,23 +173,43 @@ def train(dataset, config: TrainConfig, out=None, indices=None, progress: bool =
             dist.destroy_process_group()
 
 
+#: Rows a batch of the heads phase (:func:`train_in_phases`): the heads alone are cheap.
+HEAD_BATCH = 128
+
+
 def train_in_phases(dataset, config: TrainConfig, keypoint_steps: int, first, out=None,
                     keypoint_scene_batch: int = 0, indices=None, progress: bool = True,
-                    desc: str = 'train') -> tuple[TrainResult | None, TrainResult]:
+                    desc: str = 'train', reader_steps: int = 0, head_steps: int = 0,
+                    head_batch: int = HEAD_BATCH) -> tuple[dict, TrainResult]:
     """
-    Train the tube model's recipe: ``keypoint_steps`` of keypoint and scene terms, then ``config``.
+    Train the tube model's recipe: up to three phases that draw nothing, then ``config``.
 
-    The first phase draws nothing (5-6 times faster a step) and is written to ``first``;
-    the second starts from it with ``config``'s loss. ``keypoint_steps`` 0 skips the first.
-    Returns the first phase's result (None when skipped) and the second's.
+    1. ``reader_steps`` of the scene term alone (``loss='scene'``): the encoder learns to
+       read the placement before anything reads its code.
+    2. ``keypoint_steps`` of the keypoint and scene terms (``keypoint_scene_batch`` whole
+       placements a batch): what the keypoint phase has always been.
+    3. ``head_steps`` of the keypoint heads alone on the frozen encoder's codes
+       (``freeze_scene``), ``head_batch`` rows a batch.
+
+    Then ``config``'s loss from the last of them. A phase of 0 steps is skipped; each
+    starts from the one before and is written to its own folder: the keypoint phase to
+    ``first``, the others beside it (``first`` + ``_reader``, ``_heads``). Returns the
+    earlier phases' results by name (``reader``, ``keypoints``, ``heads``) and the last one.
     """
-    res = None
-    if keypoint_steps:
-        res = train(dataset, replace(config, loss='keypoints', max_steps=keypoint_steps,
-                                     scene_batch=keypoint_scene_batch),
-                    out=first, indices=indices, progress=progress, desc=f'{desc} keypoints')
-        config = replace(config, init=str(first))
-    return res, train(dataset, config, out=out, indices=indices, progress=progress, desc=desc)
+    plan = (('reader', reader_steps, {'loss': 'scene', 'scene_batch': 0}),
+            ('keypoints', keypoint_steps, {'loss': 'keypoints',
+                                           'scene_batch': keypoint_scene_batch}),
+            ('heads', head_steps, {'loss': 'keypoints', 'freeze_scene': True,
+                                   'batch_size': head_batch, 'scene_batch': 0}))
+    done = {}
+    for name, steps, change in plan:
+        if not steps:
+            continue
+        folder = Path(first) if name == 'keypoints' else Path(f'{first}_{name}')
+        done[name] = train(dataset, replace(config, max_steps=steps, **change), out=folder,
+                           indices=indices, progress=progress, desc=f'{desc} {name}')
+        config = replace(config, init=str(folder))
+    return done, train(dataset, config, out=out, indices=indices, progress=progress, desc=desc)
 
 
 def _train(dataset, config, out, indices, progress, desc, rank, world) -> TrainResult:
@@ -201,16 +225,23 @@ def _train(dataset, config, out, indices, progress, desc, rank, world) -> TrainR
         -1, len(ds.views), ds.channels, *rows.train[0].shape[-2:]))
     net, arch_params, init_from = _network(ds, config, rows, sil)
     loss_kind = config.loss or DEFAULT_LOSS.get(config.arch, 'mse')
-    if loss_kind in ('tube', 'keypoints'):
+    if loss_kind in ('tube', 'keypoints', 'scene'):
         if not isinstance(net, TubeNet):
             raise ValueError(f'the {loss_kind} loss trains tube, not {config.arch!r}')
         objective = TubeLoss(keypoints_only=loss_kind == 'keypoints',
+                             scene_only=loss_kind == 'scene',
                              threshold=sil.threshold / 255, channels=ds.channels)
     else:
         objective = PixelLoss(ImageLoss(loss_kind, ds.channels, sil.threshold / 255,
                                         config.silhouette_weight))
+    if config.freeze_scene and loss_kind != 'keypoints':
+        raise ValueError(f'freeze_scene trains the tube keypoint heads on the keypoint loss, '
+                         f'not {config.arch!r} on {loss_kind!r}')
     lr = _learning_rate(config)
-    fit = _fit(net, rows, objective, config, lr, rank, world, progress, desc)
+    copy_mse = _copy_mse(rows, world)
+    if config.freeze_scene:
+        rows = _encoded(net, rows)
+    fit = _fit(net, rows, objective, config, lr, rank, world, progress, desc, copy_mse)
     net.load_state_dict(fit['best_state'])
     net.eval()
     cfg = {
@@ -312,8 +343,38 @@ def _take(extra, idx):
 
 
 def _draws(objective) -> bool:
-    """Whether ``objective`` draws images (a keypoint-only one does not: no image error)."""
-    return not getattr(objective, 'keypoints_only', False)
+    """Whether ``objective`` draws images (keypoint- or scene-only ones do not: no image error)."""
+    return not (getattr(objective, 'keypoints_only', False)
+                or getattr(objective, 'scene_only', False))
+
+
+def _copy_mse(rows, world: int) -> float:
+    """Return the validation MSE of copying the initial images (all ranks' slices)."""
+    xv, tv, _ = rows.val
+    copy_sse, n_pix = _all_sum(world, float(((to_float(xv) - to_float(tv)) ** 2).sum()),
+                               tv.numel())
+    return copy_sse / n_pix
+
+
+def _encoded(net, rows, chunk: int = 512):
+    """
+    Return ``rows`` with each rest image replaced by its scene code (N x code), encoder frozen.
+
+    Each distinct rest image (a placement) is encoded once; the steps then run the keypoint
+    heads alone, about 10 ms a batch of 128 rows where encoding them cost 20 times that.
+    """
+    enc = net.keypoints.scene
+    enc.requires_grad_(False)
+
+    def codes(x8):
+        unique, inverse = torch.unique(x8.flatten(1), dim=0, return_inverse=True)
+        with torch.no_grad():
+            z = torch.cat([enc(to_float(unique[i:i + chunk].view(-1, *x8.shape[1:])))[0]
+                           for i in range(0, len(unique), chunk)])
+        return z[inverse]                                             # N x code
+
+    return replace(rows, train=(codes(rows.train[0]), *rows.train[1:]),
+                   val=(codes(rows.val[0]), *rows.val[1:]))
 
 
 def _validate(net, val, extra, objective, chunk=256):
@@ -336,7 +397,7 @@ def _validate(net, val, extra, objective, chunk=256):
     return sse, loss
 
 
-def _fit(net, rows, objective, config, lr, rank, world, progress, desc) -> dict:
+def _fit(net, rows, objective, config, lr, rank, world, progress, desc, copy_mse) -> dict:
     """Run the optimisation: seeded batches, validation rounds, early stopping."""
     # The keypoint phase of the tube model leaves its drawing parts without gradients, and
     # data without recorded placements its scene description.
@@ -350,9 +411,7 @@ def _fit(net, rows, objective, config, lr, rank, world, progress, desc) -> dict:
     gen = torch.Generator().manual_seed(config.seed)
     xt, tt, pt = rows.train
     xv, tv, _ = rows.val
-    copy_sse, n_pix, n_val = _all_sum(world, float(((to_float(xv) - to_float(tv)) ** 2).sum()),
-                                      tv.numel(), len(tv))
-    copy_mse = copy_sse / n_pix
+    n_pix, n_val = _all_sum(world, tv.numel(), len(tv))
     draws = _draws(objective)       # else no image error (val_mse None)
     best, best_mse, best_state, bad, step, history = math.inf, math.inf, None, 0, 0, []
     if not draws:

@@ -392,9 +392,12 @@ class TubeNet(nn.Module):
         B x VC x S x S images in [0, 1] + B x 6 pressures -> the predicted images.
 
         ``parts``: return the whole :class:`TubeOutput` instead (``'keypoints'``: only the
-        keypoints, the free shape and the scene description, nothing drawn); ``truth`` (B x
-        V x K x 4, the shape record) also draws the composite from the true keypoints.
+        keypoints, the free shape and the scene description, nothing drawn; ``'codes'``: the
+        same from ``image`` B x code scene codes, the description None); ``truth`` (B x V x
+        K x 4, the shape record) also draws the composite from the true keypoints.
         """
+        if parts == 'codes':            # the keypoint heads alone (a frozen encoder's codes)
+            return (*self.keypoints(image, pressure)[:2], None)
         if parts == 'keypoints':
             code, described = per_scene(self.keypoints.scene, image)
             return (*self.keypoints(code, pressure)[:2], described)
