@@ -334,7 +334,7 @@ def test_scene_batches_hold_whole_placements_and_encode_each_once(simulated, mon
 
 
 def test_a_reader_phase_then_the_heads_on_frozen_codes(simulated, tmp_path, monkeypatch):
-    """loss 'scene' trains the encoder alone; freeze_scene then trains the heads alone."""
+    """The scene loss trains the encoder alone; freeze_scene then trains the heads alone."""
     from softshape_ros.model.losses import TubeLoss
     from softshape_ros.model.tube_net import SceneEncoder
     ds = load_dataset(simulated.path)
