@@ -126,6 +126,7 @@ def test_pretrain_tube_runs_its_two_phases_and_reuses_the_data(tmp_path, capsys)
         'tube_keypoints_reader', 'tube_keypoints', 'tube_keypoints_heads')]
     assert [c['loss'] for c in chain] == ['scene', 'keypoints', 'keypoints']
     assert [c['freeze_scene'] for c in chain] == [False, False, True]
+    assert [c['warmup'] for c in chain] == [0.3, 0.0, 0.0]       # the reader's warm-up
     assert chain[2]['batch_size'] == 8
     assert [c['init_from'] for c in chain[1:]] == [str(work / 'tube_keypoints_reader'),
                                                    str(work / 'tube_keypoints')]

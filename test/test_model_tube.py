@@ -333,6 +333,20 @@ def test_scene_batches_hold_whole_placements_and_encode_each_once(simulated, mon
         train(ds, TrainConfig(arch='tube', scene_batch=-1), progress=False)
 
 
+def test_the_rate_warms_up_then_follows_its_cosine(simulated):
+    """TrainConfig.warmup: a linear rise from 1/25, then the cosine; 0 is the plain cosine."""
+    from softshape_ros.model.train import _rate
+    cfg = TrainConfig(max_steps=100, warmup=0.3)
+    assert _rate(0, cfg) == pytest.approx(0.04) and _rate(15, cfg) == pytest.approx(0.52)
+    assert _rate(30, cfg) == 1.0 and _rate(65, cfg) == pytest.approx(0.5)
+    assert _rate(100, cfg) == pytest.approx(0.0, abs=1e-12)
+    plain = TrainConfig(max_steps=100)
+    assert [_rate(s, plain) for s in (0, 50, 100)] == pytest.approx([1.0, 0.5, 0.0])
+    with pytest.raises(ValueError, match='warmup'):
+        train(load_dataset(simulated.path), TrainConfig(arch='tube', warmup=1.0),
+              progress=False)
+
+
 def test_a_reader_phase_then_the_heads_on_frozen_codes(simulated, tmp_path, monkeypatch):
     """The scene loss trains the encoder alone; freeze_scene then trains the heads alone."""
     from softshape_ros.model.losses import TubeLoss

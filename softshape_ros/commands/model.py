@@ -28,7 +28,7 @@ def _train(args) -> int:
                       eval_every=args.eval_every, patience=args.patience,
                       threads=args.threads, loss=args.loss, init=args.init,
                       min_steps=args.min_steps, scene_batch=args.scene_batch,
-                      freeze_scene=args.freeze_scene,
+                      freeze_scene=args.freeze_scene, warmup=args.warmup,
                       arch_params={'outline': True} if args.outline else {})
     res = train(ds, cfg, out=args.out, indices=rows, progress=not args.quiet)
     summary = {'checkpoint': args.out, 'steps': res.steps,
@@ -124,6 +124,9 @@ def register(sub) -> None:
                    help='tube, --loss keypoints: the scene encoder frozen, each placement '
                         'encoded once; only the keypoint heads train (fast)')
     p.add_argument('--outline', action='store_true', help=OUTLINE_HELP)
+    p.add_argument('--warmup', type=float, default=0.0,
+                   help='share of --max-steps over which the rate rises to --lr before '
+                        'its cosine (0: none)')
     p.add_argument('--lr', type=float, default=None,
                    help="Adam learning rate (default: the architecture's own, "
                         'DEFAULT_LR in softshape_ros/model/train.py)')

@@ -76,6 +76,8 @@ class TrainConfig:
     # steps, which then train only the keypoint heads (MLPs: fast, so many more rows a
     # second; docs/model.md, "A reader first").
     freeze_scene: bool = False
+    # Share of max_steps over which the rate rises linearly to lr before its cosine (0: none).
+    warmup: float = 0.0
     arch_params: dict = field(default_factory=dict)
 
 
@@ -175,6 +177,8 @@ def train(dataset, config: TrainConfig, out=None, indices=None, progress: bool =
 
 #: Rows a batch of the heads phase (:func:`train_in_phases`): the heads alone are cheap.
 HEAD_BATCH = 128
+#: The reader phase's warm-up (a share of its steps, :func:`_rate`).
+READER_WARMUP = 0.3
 
 
 def train_in_phases(dataset, config: TrainConfig, keypoint_steps: int, first, out=None,
@@ -184,8 +188,9 @@ def train_in_phases(dataset, config: TrainConfig, keypoint_steps: int, first, ou
     """
     Train the tube model's recipe: up to three phases that draw nothing, then ``config``.
 
-    1. ``reader_steps`` of the scene term alone (``loss='scene'``): the encoder learns to
-       read the placement before anything reads its code.
+    1. ``reader_steps`` of the scene term alone (``loss='scene'``, the rate warmed up over
+       :data:`READER_WARMUP` of them): the encoder learns to read the placement before
+       anything reads its code.
     2. ``keypoint_steps`` of the keypoint and scene terms (``keypoint_scene_batch`` whole
        placements a batch): what the keypoint phase has always been.
     3. ``head_steps`` of the keypoint heads alone on the frozen encoder's codes
@@ -196,7 +201,8 @@ def train_in_phases(dataset, config: TrainConfig, keypoint_steps: int, first, ou
     ``first``, the others beside it (``first`` + ``_reader``, ``_heads``). Returns the
     earlier phases' results by name (``reader``, ``keypoints``, ``heads``) and the last one.
     """
-    plan = (('reader', reader_steps, {'loss': 'scene', 'scene_batch': 0}),
+    plan = (('reader', reader_steps, {'loss': 'scene', 'scene_batch': 0,
+                                      'warmup': READER_WARMUP}),
             ('keypoints', keypoint_steps, {'loss': 'keypoints',
                                            'scene_batch': keypoint_scene_batch}),
             ('heads', head_steps, {'loss': 'keypoints', 'freeze_scene': True,
@@ -218,6 +224,8 @@ def _train(dataset, config, out, indices, progress, desc, rank, world) -> TrainR
         torch.set_num_threads(config.threads)
     if config.batch_size < world:
         raise ValueError(f'batch size {config.batch_size} < {world} processes')
+    if not 0.0 <= config.warmup < 1.0:
+        raise ValueError(f'warmup {config.warmup} is a share of the steps in [0, 1)')
     if config.scene_batch < 0:
         raise ValueError(f'scene_batch {config.scene_batch} < 0')
     rows = _rows(ds, config, indices, rank, world)
@@ -348,6 +356,21 @@ def _draws(objective) -> bool:
                 or getattr(objective, 'scene_only', False))
 
 
+def _rate(step: int, config) -> float:
+    """
+    Return the learning rate's factor at ``step``: a cosine from 1 to 0 over ``max_steps``.
+
+    With ``warmup`` (a share of the steps): a linear rise from 1/25 over those steps, then
+    the cosine over the rest (the shape of a one-cycle rate; the reader phase reads the
+    placement to 0.73 mm in x without it, 0.50 with it: docs/model.md, "A reader first").
+    """
+    n = config.max_steps
+    w = int(round(config.warmup * n))
+    if step < w:
+        return 0.04 + 0.96 * step / w
+    return 0.5 * (1 + math.cos(math.pi * min(step - w, n - w) / max(n - w, 1)))
+
+
 def _copy_mse(rows, world: int) -> float:
     """Return the validation MSE of copying the initial images (all ranks' slices)."""
     xv, tv, _ = rows.val
@@ -405,9 +428,7 @@ def _fit(net, rows, objective, config, lr, rank, world, progress, desc, copy_mse
     model = (torch.nn.parallel.DistributedDataParallel(net, find_unused_parameters=unused)
              if world > 1 else net)
     opt = torch.optim.Adam(net.parameters(), lr=lr)
-    sched = torch.optim.lr_scheduler.LambdaLR(
-        opt, lambda s: 0.5 * (1 + math.cos(math.pi * min(s, config.max_steps)
-                                           / config.max_steps)))
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: _rate(s, config))
     gen = torch.Generator().manual_seed(config.seed)
     xt, tt, pt = rows.train
     xv, tv, _ = rows.val
