@@ -119,12 +119,11 @@ def pretrain(settings: PretrainSettings, out, work, progress: bool = True) -> di
                                   head_steps=settings.head_steps,
                                   head_batch=settings.head_batch)
     seen = sum(r.rows_seen for r in phases.values())
+    steps = {name: r.steps for name, r in phases.items()}
     secs = time.perf_counter() - t0
     return {'checkpoint': str(out), 'dataset': str(ds.path), 'samples': len(ds),
-            **{f'{key}_steps': phases[name].steps if name in phases else 0
-               for key, name in (('reader', 'reader'), ('keypoint', 'keypoints'),
-                                 ('head', 'heads'))},
-            'steps': res.steps,
+            'reader_steps': steps.get('reader', 0), 'keypoint_steps': steps.get('keypoints', 0),
+            'head_steps': steps.get('heads', 0), 'steps': res.steps,
             'val_rmse_255': res.val_rmse_255, 'copy_val_rmse_255': res.copy_val_rmse_255,
             'train_seconds': round(secs),
             'train_samples_per_s': round((seen + res.rows_seen) / secs, 1),
