@@ -543,3 +543,90 @@ def test_reproduce_trains_tube_in_its_two_phases_beside_paper_and_ours(tmp_path)
     cells = [c.strip() for c in row.strip('|').split('|')]
     assert float(cells[4]) == pytest.approx(run['model']['rmse'], abs=0.01)
     assert (out / 'panels_stereo.png').stat().st_size > 100
+
+
+def test_the_depth_test_hides_the_robot_only_where_the_object_is_nearer():
+    """Known answer: an object over the tube's left half, in front above row 32, behind below."""
+    from softshape_ros.model.tube_net import TubeNet
+    net = TubeNet(1, 1, depth_test=True).double()
+    assert net.visibility is None and net.objects is not None
+    kp = torch.zeros(1, 1, KEYPOINTS, 4, dtype=torch.float64)
+    kp[..., 0], kp[..., 1], kp[..., 2] = 20.0, torch.linspace(8, 56, KEYPOINTS), 4.0
+    occupancy = torch.full((1, 1, 64, 64), -30.0, dtype=torch.float64)
+    occupancy[..., 17:21] = 30.0                                  # the object: columns 17-20
+    depth = torch.full((1, 1, 64, 64), 30.0, dtype=torch.float64)  # behind the tube ...
+    depth[..., :32, :] = -30.0                                    # ... but in front above
+    image = torch.full((1, 1, 64, 64), 0.9, dtype=torch.float64)
+    _, alpha, cov, logit = net.render(kp, image, image, None, torch.cat([occupancy, depth], 1))
+    hidden = torch.zeros(64, 64, dtype=torch.bool)
+    hidden[:32, 17:21] = True
+    a, c = alpha[0, 0], cov[0, 0]
+    assert float(c[8:32, 17:21].min()) > 0.99                     # the tube is there ...
+    assert float(a[hidden].max()) < 1e-6                          # ... and hidden
+    assert torch.allclose(a[~hidden], c[~hidden], atol=1e-4)      # elsewhere as drawn
+    assert float(logit[0, 0][hidden].max()) < -10 and float(logit[0, 0][~hidden].min()) > 8
+    # Its scene parts carry the object's two maps; the prediction draws through them.
+    x = torch.rand(2, 1, 64, 64, dtype=torch.float64)
+    out = net(x, torch.rand(2, 6, dtype=torch.float64), parts=True)
+    assert out.occupancy.shape == out.object_depth.shape == (2, 1, 64, 64)
+    assert float(torch.sigmoid(out.occupancy.detach()).max()) < 0.05  # sees no object yet
+
+
+def test_object_depths_come_from_the_recorded_placements(simulated):
+    """Per row, its placement's object depth: finite over the object's pixels, inf elsewhere."""
+    from types import SimpleNamespace
+    from softshape_ros.model.data import object_depths
+    from softshape_ros.model.losses import object_loss
+    ds = load_dataset(simulated.path)
+    idx = np.arange(len(ds))
+    od = object_depths(ds, idx)
+    assert len(od) == len(ds) and len(od.maps) == len(np.unique(ds.scene))
+    maps = od[idx]
+    assert maps.shape == (len(ds), 1, 64, 64) and maps.dtype == torch.float32
+    hit = torch.isfinite(maps)
+    # What the rest images show of the object lies where the rays hit it (the robot hides
+    # the rest of it at rest); the object stands within reach, so about the robot's depth.
+    seen = torch.from_numpy(RobotSilhouette.fit(np.asarray(ds.initial)).object_mask(
+        np.asarray(ds.initial)))
+    # (A quarter-covered edge pixel counts as seen, a ray through its centre misses: 6 %
+    # of the seen pixels; the maps shifted by one column miss 12 %.)
+    assert int(seen.sum()) > 1000
+    assert int((seen & ~hit).sum()) < 0.08 * int(seen.sum())
+    assert float(maps[hit].abs().max()) < 60
+    assert torch.equal(od.rows(slice(3, 7))[np.arange(4)], maps[3:7])
+    # Unknown placements (bags without a session YAML): none.
+    assert object_depths(SimpleNamespace(meta={}, scene=np.zeros(2)), [0, 1]) is None
+    # The object term: low for the truth, higher for a wrong depth or no object seen.
+    t = maps[:8]
+    right = object_loss(torch.where(torch.isfinite(t), 20.0, -20.0), t.nan_to_num(0, 0, 0), t)
+    far = object_loss(torch.where(torch.isfinite(t), 20.0, -20.0), t.nan_to_num(0, 0, 0) + 5, t)
+    blind = object_loss(torch.full_like(t, -20.0), t.nan_to_num(0, 0, 0), t)
+    share = float(torch.isfinite(t).float().mean())               # the object's pixels
+    assert float(right) < 1e-6 and float(blind) > 10 * share
+    assert float(far) == pytest.approx(0.1 * 4.5 * share, rel=1e-4)  # smooth L1 of 5 px
+
+
+def test_a_depth_test_model_learns_where_the_object_is(simulated, tmp_path):
+    """A short training: ObjectNet finds the objects; the checkpoint loads and predicts."""
+    from softshape_ros.model.data import object_depths
+    ds = load_dataset(simulated.path)
+    cfg = TrainConfig(arch='tube', batch_size=16, max_steps=120, eval_every=40, patience=100,
+                      seed=0, threads=1, split='scene', arch_params={'depth_test': True})
+    res = train(ds, cfg, out=tmp_path / 'ck', progress=False)
+    model, saved = load_checkpoint(tmp_path / 'ck')
+    assert saved['arch_params']['depth_test'] is True and model.depth_test
+    assert model.visibility is None
+    val = np.asarray(saved['dataset']['val_rows'])
+    x = torch.from_numpy(np.asarray(ds.initial)[val]).float().flatten(1, 2) / 255
+    want = torch.isfinite(object_depths(ds, val)[np.arange(len(val))])
+    with torch.no_grad():
+        occupancy = model.scene_parts(x).objects[:, :1] > 0
+    iou = float((occupancy & want).sum() / (occupancy | want).sum())
+    assert iou > 0.5, iou                                         # unseen placements
+    assert res.history[-1]['val_loss'] < res.history[0]['val_loss']
+    img = np.asarray(ds.initial)[val[0]]
+    pred = Predictor.from_checkpoint(tmp_path / 'ck').predict(img, ds.pressure[val[0]])
+    assert pred.shape == img.shape and pred.dtype == np.uint8
+    with pytest.raises(CheckpointError, match='depth_test'):
+        train(ds, TrainConfig(arch='tube', init=str(tmp_path / 'ck'), max_steps=1,
+                              arch_params={'depth_test': False}), progress=False)

@@ -14,13 +14,24 @@ from softshape_ros.commands.sim import supersample_arg
 
 OUTLINE_HELP = ("tube: learn how far out of the keypoints' radius the drawn outline lies, "
                 'per view (off in the shipped recipe; docs/model.md, "The outline")')
+DEPTH_TEST_HELP = ('tube: hide the robot where a learned map of the object puts it nearer than '
+                   'the tube (docs/model.md, "A depth test")')
+
+
+def tube_options(args, command: str) -> dict:
+    """Return the tube-only flags as arch_params; any of them on another arch exits."""
+    params = {k: True for k in ('outline', 'depth_test') if getattr(args, k, None)}
+    if params and args.arch != 'tube':
+        flag = '--' + next(iter(params)).replace('_', '-')
+        raise SystemExit(f'softshape {command}: {flag} is a tube model option, not '
+                         f'{args.arch!r}')
+    return params
 
 
 def _train(args) -> int:
     from softshape_ros.data import load_dataset
     from softshape_ros.model.train import TrainConfig, train
-    if args.outline and args.arch != 'tube':
-        raise SystemExit(f'softshape train: --outline is a tube model option, not {args.arch!r}')
+    arch_params = tube_options(args, 'train')
     ds = load_dataset(args.dataset)
     rows = None if args.rows is None else range(min(args.rows, len(ds)))
     cfg = TrainConfig(arch=args.arch, seed=args.seed, split=args.split,
@@ -29,7 +40,7 @@ def _train(args) -> int:
                       threads=args.threads, loss=args.loss, init=args.init,
                       min_steps=args.min_steps, scene_batch=args.scene_batch,
                       freeze_scene=args.freeze_scene, warmup=args.warmup,
-                      arch_params={'outline': True} if args.outline else {})
+                      arch_params=arch_params)
     res = train(ds, cfg, out=args.out, indices=rows, progress=not args.quiet)
     summary = {'checkpoint': args.out, 'steps': res.steps,
                'val_rmse_255': res.val_rmse_255, 'copy_val_rmse_255': res.copy_val_rmse_255}
@@ -90,7 +101,8 @@ def _pretrain(args) -> int:
         'samples', 'scenes', 'seed', 'max_steps', 'batch_size', 'lr', 'eval_every',
         'patience', 'threads', 'workers', 'keypoint_steps', 'keypoint_scene_batch',
         'reader_steps', 'head_steps', 'head_batch',
-        'toward_share', 'sparse_share', 'far_share', 'outline', 'supersample')})
+        'toward_share', 'sparse_share', 'far_share', 'outline', 'depth_test',
+        'supersample')})
     out = args.out or f'models/{args.arch}_stereo_gray'
     print(json.dumps(pretrain(s, out, args.work, progress=not args.quiet)))
     return 0
@@ -124,6 +136,7 @@ def register(sub) -> None:
                    help='tube, --loss keypoints: the scene encoder frozen, each placement '
                         'encoded once; only the keypoint heads train (fast)')
     p.add_argument('--outline', action='store_true', help=OUTLINE_HELP)
+    p.add_argument('--depth-test', action='store_true', help=DEPTH_TEST_HELP)
     p.add_argument('--warmup', type=float, default=0.0,
                    help='share of --max-steps over which the rate rises to --lr before '
                         'its cosine (0: none)')
@@ -199,6 +212,7 @@ def register(sub) -> None:
     p.add_argument('--workers', type=int, default=None,
                    help='simulation processes (0: one per core)')
     p.add_argument('--outline', action='store_true', default=None, help=OUTLINE_HELP)
+    p.add_argument('--depth-test', action='store_true', default=None, help=DEPTH_TEST_HELP)
     p.add_argument('--quiet', action='store_true', help='no progress bars')
     p.set_defaults(func=_pretrain)
 

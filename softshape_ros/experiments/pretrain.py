@@ -48,6 +48,7 @@ class PretrainSettings:
     sparse_share: float = SPARSE_SHARE
     far_share: float = 0.0          # placements beyond reach (make_plan)
     outline: bool = False           # tube: the learned outline (TubeNet(outline=True))
+    depth_test: bool = False        # tube: the robot hidden by a depth test (TubeNet)
     # The simulated images' samples per pixel a side (0: the camera's own pixels; several:
     # a mix, each placement rendered with one).
     supersample: int | tuple = 3
@@ -102,14 +103,15 @@ def simulated_dataset(settings: PretrainSettings, work, progress: bool = True):
 
 def pretrain(settings: PretrainSettings, out, work, progress: bool = True) -> dict:
     """Simulate (or reuse) the data, train ``settings.arch``, write the checkpoint to ``out``."""
-    if settings.outline and settings.arch != 'tube':
-        raise ValueError(f'outline is a tube model option, not {settings.arch!r}')
+    tube_params = {k: True for k in ('outline', 'depth_test') if getattr(settings, k)}
+    if tube_params and settings.arch != 'tube':
+        raise ValueError(f'{", ".join(tube_params)}: tube model options, not {settings.arch!r}')
     ds = simulated_dataset(settings, work, progress)
     cfg = TrainConfig(arch=settings.arch, seed=settings.seed, split='scene',
                       batch_size=settings.batch_size, lr=settings.lr,
                       max_steps=settings.max_steps, eval_every=settings.eval_every,
                       patience=settings.patience, threads=settings.threads,
-                      arch_params={'outline': True} if settings.outline else {})
+                      arch_params=tube_params)
     t0 = time.perf_counter()
     phases, res = train_in_phases(ds, cfg, settings.keypoint_steps,
                                   Path(work) / f'{settings.arch}_keypoints', out=out,

@@ -77,6 +77,29 @@ class TubeWeights:
     teacher: float = 20.0       # ... and from the true ones (background, visibility, shade)
     background: float = 20.0    # L1 of the background where the true robot is not
     visibility: float = 1.0     # BCE of the visibility inside the true tube: is it dark?
+    objects: float = 1.0        # depth_test: BCE of where the object is + 0.1 x its depth
+
+
+#: Depth error (px) below which the object's depth term is quadratic (smooth L1).
+OBJECT_DEPTH_EDGE_PX = 1.0
+#: The depth term's weight per px, per pixel of the image (not per pixel of the object).
+OBJECT_DEPTH_WEIGHT = 0.1
+
+
+def object_loss(occupancy, depth, target) -> torch.Tensor:
+    """
+    Return the object term: BCE of the occupancy logits + 0.1 x smooth L1 of the depth (px).
+
+    ``target`` B x V x S x S: the object's depth per pixel (inf: no object there,
+    :func:`~softshape_ros.model.data.object_depths`); the depth is scored where it is hit.
+    """
+    hit = torch.isfinite(target)
+    loss = F.binary_cross_entropy_with_logits(occupancy, hit.to(occupancy.dtype))
+    if bool(hit.any()):
+        err = F.smooth_l1_loss(depth[hit], target[hit], beta=OBJECT_DEPTH_EDGE_PX,
+                               reduction='sum') / hit.numel()
+        loss = loss + OBJECT_DEPTH_WEIGHT * err
+    return loss
 
 
 class TubeLoss:
@@ -90,9 +113,11 @@ class TubeLoss:
     image is then None); ``x`` may then be B x code scene codes instead of images (the
     encoder frozen, each placement encoded once: ``TrainConfig.freeze_scene``).
     ``scene_only``: the scene term alone (the encoder learns to read the placement before
-    anything reads its code; nothing drawn). ``threshold``: the robot's luminance threshold
-    ([0, 1] units; None: no visibility term): inside the true tube the target shows the
-    robot where it is darker, the object where the object is in front.
+    anything reads its code; nothing drawn). ``objects``: B x V x S x S object depths
+    (:func:`object_loss`; None: unknown) for a ``depth_test`` model's ObjectNet.
+    ``threshold``: the robot's luminance threshold ([0, 1] units; None: no visibility
+    term): inside the true tube the target shows the robot where it is darker, the object
+    where the object is in front.
     """
 
     def __init__(self, weights: TubeWeights = TubeWeights(), keypoints_only: bool = False,
@@ -123,7 +148,7 @@ class TubeLoss:
         spread = net.keypoints.scene.spread
         return self.w.scene * (((described - scene) / spread) ** 2).mean()
 
-    def __call__(self, model, x, p, t, truth=None, free=None, scene=None):
+    def __call__(self, model, x, p, t, truth=None, free=None, scene=None, objects=None):
         w = self.w
         if self.scene_only:
             if scene is None:
@@ -139,6 +164,8 @@ class TubeLoss:
                     + self._scene(model, described, scene)), None
         out = model(x, p, truth, parts=True)
         loss = w.image * F.l1_loss(out.image, t) + self._scene(model, out.scene, scene)
+        if objects is not None and out.occupancy is not None and w.objects:
+            loss = loss + w.objects * object_loss(out.occupancy, out.object_depth, objects)
         if truth is None:
             return loss, out.image
         loss = loss + self._keypoints(out.keypoints, out.free_keypoints, truth, free, x.dtype)
@@ -164,6 +191,6 @@ class PixelLoss:
     def __init__(self, loss: ImageLoss):
         self.loss = loss
 
-    def __call__(self, model, x, p, t, truth=None, free=None, scene=None):
+    def __call__(self, model, x, p, t, truth=None, free=None, scene=None, objects=None):
         y = model(x, p)
         return self.loss(y, t), y

@@ -28,7 +28,7 @@ from softshape_ros.model import data as model_data
 from softshape_ros.model import layers, losses, networks, tube_net, tube_render
 from softshape_ros.model.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from softshape_ros.model.data import (
-    scene_targets, shape_tensors, split_indices, to_float, to_tensors)
+    object_depths, scene_targets, shape_tensors, split_indices, to_float, to_tensors)
 from softshape_ros.model.losses import ImageLoss, PixelLoss, TubeLoss
 from softshape_ros.model.metrics import RobotSilhouette
 from softshape_ros.model.networks import build_network
@@ -46,7 +46,8 @@ DEFAULT_LOSS = {'paper': 'mse', 'ours': 'mse', 'tube': 'tube'}
 def code_stamp() -> str:
     """Hash of the network, data and training code: results of other code are never reused."""
     files = (networks.__file__, layers.__file__, tube_net.__file__, tube_render.__file__,
-             model_data.__file__, losses.__file__, __file__)
+             model_data.__file__, losses.__file__, __file__,
+             Path(model_data.__file__).parents[1] / 'sim' / 'object_depth.py')
     return hashlib.sha256(b''.join(Path(f).read_bytes() for f in files)).hexdigest()[:12]
 
 
@@ -112,9 +113,10 @@ class Rows:
     val_idx: np.ndarray
     train: tuple            # (initial uint8, target uint8, pressure float) N x VC x S x S
     val: tuple
-    # (keypoints N x V x K x 4, free N bool, scene N x 17), each None where not recorded
-    train_shape: tuple = (None, None, None)
-    val_shape: tuple = (None, None, None)
+    # (keypoints N x V x K x 4, free N bool, scene N x 17, object depths: data.ObjectDepths
+    # for a depth_test model), each None where not recorded
+    train_shape: tuple = (None, None, None, None)
+    val_shape: tuple = (None, None, None, None)
     train_scene: np.ndarray | None = None   # N placement ids of the training rows, in order
 
 
@@ -247,6 +249,8 @@ def _train(dataset, config, out, indices, progress, desc, rank, world) -> TrainR
                          f'not {config.arch!r} on {loss_kind!r}')
     lr = _learning_rate(config)
     copy_mse = _copy_mse(rows, world)
+    if getattr(net, 'depth_test', False) and _draws(objective):
+        rows = _with_object_depths(ds, rows, rank, world, progress)
     if config.freeze_scene:
         rows = _encoded(net, rows)
     fit = _fit(net, rows, objective, config, lr, rank, world, progress, desc, copy_mse)
@@ -296,8 +300,17 @@ def _rows(ds, config, indices, rank, world) -> Rows:
         *shape_tensors(ds, va_idx), scene_targets(ds, va_idx)))
     return Rows(tr_idx, va_idx, to_tensors(ds, tr_idx, maxp, as_uint8=True),
                 tuple(t[vs] for t in val),
-                (*shape_tensors(ds, tr_idx), scene_targets(ds, tr_idx)), val_shape,
-                np.asarray(ds.scene)[np.sort(tr_idx)])
+                (*shape_tensors(ds, tr_idx), scene_targets(ds, tr_idx), None),
+                (*val_shape, None), np.asarray(ds.scene)[np.sort(tr_idx)])
+
+
+def _with_object_depths(ds, rows, rank, world, progress) -> Rows:
+    """Add the rows' object depth maps (a depth_test model's ObjectNet learns them)."""
+    tr = object_depths(ds, rows.train_idx, progress=progress and rank == 0)
+    va = object_depths(ds, rows.val_idx)
+    vs = slice(rank * len(rows.val_idx) // world, (rank + 1) * len(rows.val_idx) // world)
+    return replace(rows, train_shape=(*rows.train_shape[:3], tr),
+                   val_shape=(*rows.val_shape[:3], None if va is None else va.rows(vs)))
 
 
 def _network(ds, config, rows, sil):
@@ -346,7 +359,7 @@ def _learning_rate(config) -> float:
 
 
 def _take(extra, idx):
-    """Rows ``idx`` of the optional (keypoints, free, scene) tensors."""
+    """Rows ``idx`` of the optional (keypoints, free, scene, object depths) tensors."""
     return tuple(None if t is None else t[idx] for t in extra)
 
 

@@ -18,7 +18,9 @@ over the scene with the robot removed, hidden where the object stands in front o
   background depend only on the scene, so inference computes them once per scene (``cache``).
 - **Visibility**: a small FiLM CNN over the rest images, the drawn coverage and depth,
   conditioned on the pressures and the scene code: where the object is in front of the
-  robot, the object's pixels stay.
+  robot, the object's pixels stay. With ``depth_test`` (:class:`ObjectNet`) instead a depth
+  test: a per-scene map of where the object is and how near its front lies, against the
+  tube's own near surface.
 
 Trained on the simulator's shape record (``ds.shape``) with keypoint L1 in px, an L1 of
 the scene description against the recorded placement (``data.scene_targets``), plus an L1
@@ -38,9 +40,13 @@ from torch import nn
 
 from softshape_ros.model.layers import Stage, coordinate_planes, down_conv, up_conv
 from softshape_ros.model.data import SCENE_FEATURES
-from softshape_ros.model.tube_render import R, X, Y, TubeField, TubeShader, coverage, tube_field
+from softshape_ros.model.tube_render import R, X, Y, TubeField, TubeShader, coverage
+from softshape_ros.model.tube_render import front_depth, tube_field
 
 N_PRESSURES = 6
+# The depth test's softness (px of depth): where the robot's near surface is this much
+# behind the object's, it is hidden by 1 / (1 + e^-1) (docs/model.md, "A depth test").
+DEPTH_SOFT_PX = 1.0
 KEYPOINTS = 16
 # Output scale of the keypoint heads per channel (x, y, radius, depth; px): the MLPs work
 # in units of about one.
@@ -59,6 +65,8 @@ class TubeOutput(NamedTuple):
     teacher_coverage: torch.Tensor | None   # B x V x S x S: the true keypoints' tube
     teacher_visibility: torch.Tensor | None  # B x V x S x S logits: robot in front there
     scene: torch.Tensor             # B x 17: the object as the scene code describes it
+    occupancy: torch.Tensor | None = None     # B x V x S x S logits: the object (depth_test)
+    object_depth: torch.Tensor | None = None  # B x V x S x S px: its front (depth_test)
 
 
 class SceneParts(NamedTuple):
@@ -67,6 +75,8 @@ class SceneParts(NamedTuple):
     code: torch.Tensor              # B x code
     described: torch.Tensor         # B x 17 SCENE_FEATURES read back from the code
     background: torch.Tensor        # B x VC x S x S: the scene with the robot removed
+    # B x 2V x S x S: ObjectNet's occupancy logits, then depths (depth_test; else B x 0)
+    objects: torch.Tensor
 
 
 def mlp(cin: int, hidden: int, cout: int, zero_last: bool = True) -> nn.Sequential:
@@ -187,6 +197,56 @@ class KeypointNet(nn.Module):
         free = self.template + self.free(pressure).view(shape) * self.scale
         corr = self.correct(torch.cat([pressure, code], 1)).view(shape) * self.scale
         return free + corr, free, self.cond(pressure)
+
+
+class ObjectNet(nn.Module):
+    """
+    Rest images + scene code -> per view where the object is and how near its front is.
+
+    Returns B x V x S x S occupancy logits and B x V x S x S depth of the object's front
+    surface (px further from the camera than the robot's base: the shape record's depth).
+    A U-Net down to S/8 with the scene code added at the bottom and the full-resolution
+    features kept to the head, so the silhouette's edge lands on the image's pixels. Why:
+    with it the composite hides the robot by a depth test (:meth:`TubeNet.render`). Drawn
+    from the true keypoints and the object's true depth, that test took the robot drawn over
+    objects from 1.6 % of their pixels (the learned visibility) to 0.1 % (docs/model.md,
+    "A depth test"). Its head starts at "no object anywhere": nothing hidden.
+    """
+
+    DEPTH_SCALE = 16.0              # px per unit of the depth output
+
+    def __init__(self, views: int, channels: int, code: int = 64, widths=(16, 32, 64)):
+        super().__init__()
+        self.views = views
+        w0, w1, w2 = widths
+        self.inp = nn.Sequential(nn.Conv2d(in_channels=views * channels + 2, out_channels=w0,
+                                           kernel_size=3, padding=1), nn.GroupNorm(4, w0),
+                                 nn.ReLU())
+        self.down = nn.ModuleList([nn.Sequential(down_conv(a, b), nn.GroupNorm(8, b), nn.ReLU())
+                                   for a, b in ((w0, w1), (w1, w2), (w2, w2))])
+        self.code = nn.Linear(code, w2)
+        self.up = nn.ModuleList([nn.Sequential(up_conv(a, b), nn.GroupNorm(8, b), nn.ReLU())
+                                 for a, b in ((w2, w2), (2 * w2, w1), (2 * w1, w0))])
+        self.head = nn.Conv2d(in_channels=2 * w0, out_channels=2 * views, kernel_size=3,
+                              padding=1)
+        nn.init.zeros_(self.head.weight)
+        with torch.no_grad():
+            self.head.bias.copy_(torch.tensor([-4.0] * views + [0.0] * views))
+
+    def forward(self, image: torch.Tensor, code: torch.Tensor):
+        """B x VC x S x S rest images + B x code -> (occupancy logits, depth px), B x V x S x S."""
+        b, _, h, w = image.shape
+        x = self.inp(torch.cat([image, coordinate_planes(b, h, w, image)], 1))  # B x w0 x S
+        skips = [x]
+        for stage in self.down:                                      # S/2, S/4, S/8
+            x = stage(x)
+            skips.append(x)
+        x = x + self.code(code)[:, :, None, None]
+        skips.pop()
+        for stage in self.up:                                        # S/4, S/2, S
+            x = torch.cat([stage(x), skips.pop()], 1)
+        occ, depth = self.head(x).split(self.views, 1)
+        return occ, depth * self.DEPTH_SCALE
 
 
 class BackgroundNet(nn.Module):
@@ -327,16 +387,26 @@ class TubeNet(nn.Module):
     """The structured forward model (see the module notes); ``forward`` returns the image."""
 
     def __init__(self, views: int, channels: int, keypoints: int = KEYPOINTS, size: int = 64,
-                 cond: int = 64, scene_visibility: bool = False, outline: bool = False):
+                 cond: int = 64, scene_visibility: bool = False, outline: bool = False,
+                 depth_test: bool = False):
         super().__init__()
         self.views, self.channels, self.size = int(views), int(channels), int(size)
         self.keypoints = KeypointNet(views, channels, keypoints, size, cond=cond)
         self.background = BackgroundNet(views, channels)
+        code = self.keypoints.scene.describe.in_features
+        # True (``softshape train --depth-test``): the robot is hidden where ObjectNet puts
+        # the object nearer than the tube's surface; False (checkpoints that record no
+        # ``depth_test``): the learned VisibilityNet decides. docs/model.md, "A depth test".
+        self.depth_test = bool(depth_test)
         # False: the visibility of checkpoints made before it saw the scene code (they
         # record no ``scene_visibility``); training builds True (train._network).
         self.scene_visibility = bool(scene_visibility)
-        code = self.keypoints.scene.describe.in_features if scene_visibility else 0
-        self.visibility = VisibilityNet(views, channels, cond, code=code)
+        if self.depth_test:
+            self.objects, self.visibility = ObjectNet(views, channels, code=code), None
+        else:
+            self.objects = None
+            self.visibility = VisibilityNet(views, channels, cond,
+                                            code=code if scene_visibility else 0)
         # True: the shader learns how far out the drawn outline lies (``softshape train
         # --outline``); False (the shipped recipe, and checkpoints that record no
         # ``outline``): the edge at the keypoints' radius. docs/model.md, "The outline".
@@ -370,17 +440,33 @@ class TubeNet(nn.Module):
 
     def _one_scene_parts(self, image: torch.Tensor) -> tuple:
         code, described = self.keypoints.scene(image)
-        return code, described, self.background(image, self.keypoints.rest())
+        objects = (torch.cat(self.objects(image, code), 1) if self.depth_test
+                   else image.new_zeros(len(image), 0))
+        return code, described, self.background(image, self.keypoints.rest()), objects
 
-    def render(self, keypoints, image, background, cond):
-        """Compose the tube over ``background``: (image, alpha, coverage, visibility logits)."""
+    def render(self, keypoints, image, background, cond, objects):
+        """
+        Compose the tube over ``background``: (image, alpha, coverage, visibility logits).
+
+        ``objects``: :attr:`SceneParts.objects`. With ``depth_test`` the robot is hidden
+        where the object is (its occupancy) and its front is nearer than the tube's surface;
+        else the VisibilityNet's logits decide.
+        """
         b, v, c, s = image.shape[0], self.views, self.channels, self.size
         field: TubeField = tube_field(keypoints, s)
         cov = self.shader.coverage(field).view(b, v, s, s)
-        depth = (field.depth / keypoints[:, :, :1, R].clamp_min(0.5)).view(b, v, s, s)  # radii
-        logit = self.visibility(torch.cat([image, cov, depth * cov,
-                                           coordinate_planes(b, s, s, image)], 1), cond)
-        alpha = cov * torch.sigmoid(logit)                           # B x V x S x S
+        if self.depth_test:
+            occ, obj_depth = objects.reshape(b, 2, v, s * s).unbind(1)       # B x V x P
+            hidden = torch.sigmoid(occ) * torch.sigmoid(
+                (front_depth(field) - obj_depth) / DEPTH_SOFT_PX)
+            visible = (1.0 - hidden).view(b, v, s, s)
+            logit = torch.logit(visible.clamp(1e-6, 1.0 - 1e-6))
+            alpha = cov * visible                                    # B x V x S x S
+        else:
+            depth = (field.depth / keypoints[:, :, :1, R].clamp_min(0.5)).view(b, v, s, s)
+            logit = self.visibility(torch.cat([image, cov, depth * cov,
+                                               coordinate_planes(b, s, s, image)], 1), cond)
+            alpha = cov * torch.sigmoid(logit)                       # B x V x S x S
         shade = self.shader(field).view(b, v, c, s, s)
         a = alpha[:, :, None]
         out = a * shade + (1 - a) * background.view(b, v, c, s, s)
@@ -409,10 +495,12 @@ class TubeNet(nn.Module):
         # the robot (TubeLoss): through the composites, the robot's rim errors were paid for
         # by a fill turned white (0.998 against a 0.94 backdrop).
         bg = scene.background if truth is None else scene.background.detach()
-        out, alpha, _, _ = self.render(kp, image, bg, cond)
+        out, alpha, _, _ = self.render(kp, image, bg, cond, scene.objects)
         if not parts:
             return out
         teacher, _, cov, vis = (None,) * 4 if truth is None else self.render(
-            truth, image, bg, cond)
+            truth, image, bg, cond, scene.objects)
+        occ, obj_depth = (scene.objects.split(self.views, 1) if self.depth_test
+                          else (None, None))
         return TubeOutput(out, kp, free, scene.background, alpha, teacher, cov, vis,
-                          scene.described)
+                          scene.described, occ, obj_depth)

@@ -23,13 +23,14 @@ X, Y, R, Z = range(4)
 
 
 class TubeField(NamedTuple):
-    """Per pixel (B x V x P each, P = S*S row-major): distance, normal, depth."""
+    """Per pixel (B x V x P each, P = S*S row-major): distance, normal, depth, radius."""
 
     sd: torch.Tensor        # px to the outline, negative inside
     nx: torch.Tensor        # unit surface normal facing the camera (camera frame:
     ny: torch.Tensor        # x right, y down, z forward)
     nz: torch.Tensor
     depth: torch.Tensor     # the backbone's depth at the nearest point (px)
+    radius: torch.Tensor    # the tube's radius there (px)
 
 
 def pixel_grid(size: int, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -96,7 +97,17 @@ def tube_field(keypoints: torch.Tensor, size: int) -> TubeField:
     wx, wy = side * (ez / n3) * (ex / exy), side * (ez / n3) * (ey / exy)
     wz = -(side * exy / n3 + (1.0 - side))
     return TubeField(d - ar - t * er, rel * dx / d + face * wx, rel * dy / d + face * wy,
-                     face * wz, az + t * ez)
+                     face * wz, az + t * ez, ar + t * er)
+
+
+def front_depth(field: TubeField) -> torch.Tensor:
+    """
+    Return B x V x P: the depth (px, as the keypoints') of the tube's near surface per pixel.
+
+    The backbone's depth less the radius along the normal's camera-facing part: the full
+    radius at the tube's middle, nothing at its outline. What a depth test compares.
+    """
+    return field.depth + field.radius * field.nz
 
 
 def coverage(sd: torch.Tensor) -> torch.Tensor:
