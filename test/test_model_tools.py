@@ -37,10 +37,11 @@ def test_silhouette_iou_and_tip_separate_good_from_copy():
     assert np.all(sil.base_rc[:, 0] < 10) and np.all(np.abs(sil.base_rc[:, 1] - 32) < 3)
 
 
-@pytest.mark.parametrize('arch', ['paper', 'ours', 'tube'])
-def test_onnx_export_matches_pytorch(arch, tmp_path):
+@pytest.mark.parametrize('arch, params', [
+    ('paper', {}), ('ours', {}), ('tube', {'scene_visibility': True}),   # what training builds
+    ('tube', {'scene_visibility': True, 'depth_test': True})])          # ... and pretrain
+def test_onnx_export_matches_pytorch(arch, params, tmp_path):
     torch.manual_seed(1)
-    params = {'scene_visibility': True} if arch == 'tube' else {}   # what training builds
     net = build_network(arch, 2, 3, **params)
     with torch.no_grad():                # ours starts as the identity: make it non-trivial
         for p in net.parameters():

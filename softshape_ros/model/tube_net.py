@@ -440,8 +440,9 @@ class TubeNet(nn.Module):
 
     def _one_scene_parts(self, image: torch.Tensor) -> tuple:
         code, described = self.keypoints.scene(image)
+        # Without the depth test, B x 0 (a slice: keeps the batch size symbolic for export).
         objects = (torch.cat(self.objects(image, code), 1) if self.depth_test
-                   else image.new_zeros(len(image), 0))
+                   else image.flatten(1)[:, :0])
         return code, described, self.background(image, self.keypoints.rest()), objects
 
     def render(self, keypoints, image, background, cond, objects):
