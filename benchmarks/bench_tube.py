@@ -4,7 +4,8 @@ The tube model: its renderer, one full-loss training step and its predictions, o
 What the 20 000-sample pre-training and ``softshape evaluate`` spend their time on (issue
 18: train to early stopping in <= 30 min). Data: 128 stereo samples of the default
 contact-rich plan over 8 placements, simulated here (shape record, contact record and
-placements, as training sees them); network: the shipped checkpoint.
+placements, as training sees them, and the object depth maps where the network has the
+depth test); network: the shipped checkpoint (``run(checkpoint)``: another).
 """
 
 import tempfile
@@ -17,7 +18,7 @@ from benchmarks.bench_model import _latency
 from softshape_ros.config import load_rig_config
 from softshape_ros.demo.pipeline import PRETRAINED
 from softshape_ros.model import Predictor
-from softshape_ros.model.data import scene_targets, shape_tensors, to_tensors
+from softshape_ros.model.data import object_depths, scene_targets, shape_tensors, to_tensors
 from softshape_ros.model.losses import TubeLoss
 from softshape_ros.model.tube_render import tube_field
 from softshape_ros.sim.generate import generate, make_plan
@@ -30,20 +31,21 @@ def _median_s(fn, n: int, warm: int = 2) -> float:
     return _latency(fn, n=n, warm=warm)['median_ms'] / 1000
 
 
-def run() -> dict:
+def run(checkpoint=PRETRAINED) -> dict:
     restore = torch.get_num_threads()
     torch.set_num_threads(1)
     cfg = load_rig_config()
     with tempfile.TemporaryDirectory() as tmp:
         ds, _ = generate(cfg, make_plan(cfg, 128, 8, seed=11), Path(tmp) / 'ds',
                          ['main', 'side'], workers=1, progress=False)
-        pred = Predictor.from_checkpoint(PRETRAINED)
+        pred = Predictor.from_checkpoint(checkpoint)
         net = pred.model
         rows = np.arange(BATCH)
         x, t, p = to_tensors(ds, rows, ds.max_pressure_pa)
         truth, free = shape_tensors(ds, rows)
         scene = scene_targets(ds, rows)
-        out = {'batch': BATCH, 'threads': 1}
+        objects = object_depths(ds, rows)[rows] if net.depth_test else None
+        out = {'batch': BATCH, 'threads': 1, 'depth_test': net.depth_test}
 
         def render():
             kp = truth.clone().requires_grad_(True)
@@ -56,7 +58,7 @@ def run() -> dict:
 
         def step():
             net.train()
-            loss, _ = objective(net, x, p, t, truth, free, scene)
+            loss, _ = objective(net, x, p, t, truth, free, scene, objects)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()

@@ -90,9 +90,12 @@ def test_pretrain_tube_runs_its_two_phases_and_reuses_the_data(tmp_path, capsys)
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert out['keypoint_steps'] == 3 and out['steps'] == 2
     assert out['settings']['arch'] == 'tube' and out['settings']['samples'] == 40
-    _, cfg = load_checkpoint(tmp_path / 'ck')
+    model, cfg = load_checkpoint(tmp_path / 'ck')
     assert cfg['arch'] == 'tube' and cfg['training']['loss'] == 'tube'
     assert cfg['training']['init_from'] == str(tmp_path / 'work' / 'tube_keypoints')
+    # The shipped recipe hides the robot by its depth test (docs/model.md, "A depth test").
+    assert out['settings']['depth_test'] is True and cfg['arch_params']['depth_test'] is True
+    assert model.depth_test and model.visibility is None
     _, first = load_checkpoint(tmp_path / 'work' / 'tube_keypoints')
     assert first['training']['loss'] == 'keypoints' and first['training']['steps'] == 3
     assert first['training']['best_val_mse'] is None          # the keypoint phase draws nothing
@@ -104,7 +107,9 @@ def test_pretrain_tube_runs_its_two_phases_and_reuses_the_data(tmp_path, capsys)
     meta = json.loads((data / 'meta.json').read_text())
     assert meta['simulator']['sparse_share'] > 0
     # Other plan settings: the data is simulated again, not taken from the cache.
-    assert cli(args + ['--sparse-share', '0', '--max-steps', '1', '--keypoint-steps', '1']) == 0
+    assert cli(args + ['--sparse-share', '0', '--max-steps', '1', '--keypoint-steps', '1',
+                       '--no-depth-test']) == 0
+    assert load_checkpoint(tmp_path / 'ck')[1]['arch_params'].get('depth_test') is None
     meta = json.loads((data / 'meta.json').read_text())
     assert (data / 'meta.json').stat().st_mtime_ns != stamp
     assert meta['simulator']['sparse_share'] == 0

@@ -7,6 +7,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 
@@ -212,7 +213,8 @@ def register(sub) -> None:
     p.add_argument('--workers', type=int, default=None,
                    help='simulation processes (0: one per core)')
     p.add_argument('--outline', action='store_true', default=None, help=OUTLINE_HELP)
-    p.add_argument('--depth-test', action='store_true', default=None, help=DEPTH_TEST_HELP)
+    p.add_argument('--depth-test', action=argparse.BooleanOptionalAction, default=None,
+                   help=DEPTH_TEST_HELP + '; default on for tube (the shipped recipe)')
     p.add_argument('--quiet', action='store_true', help='no progress bars')
     p.set_defaults(func=_pretrain)
 

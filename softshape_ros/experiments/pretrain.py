@@ -68,7 +68,7 @@ class PretrainSettings:
 #: 20 000 samples still leave a gap between seen and unseen ones, 10 000 narrow it), and
 #: data is cheap. The keypoint phase takes 16 whole placements a batch, each encoded once.
 TUBE = {'samples': 20000, 'scenes': 10000, 'keypoint_steps': 10000, 'keypoint_scene_batch': 16,
-        'max_steps': 1200, 'eval_every': 400, 'patience': 100}
+        'max_steps': 1200, 'eval_every': 400, 'patience': 100, 'depth_test': True}
 
 
 def simulated_dataset(settings: PretrainSettings, work, progress: bool = True):
