@@ -18,7 +18,8 @@ from benchmarks.bench_model import _latency
 from softshape_ros.config import load_rig_config
 from softshape_ros.demo.pipeline import PRETRAINED
 from softshape_ros.model import Predictor
-from softshape_ros.model.data import object_depths, scene_targets, shape_tensors, to_tensors
+from softshape_ros.experiments.object_depths import object_depths
+from softshape_ros.model.data import scene_targets, shape_tensors, to_tensors
 from softshape_ros.model.losses import TubeLoss
 from softshape_ros.model.tube_render import tube_field
 from softshape_ros.sim.generate import generate, make_plan

@@ -578,7 +578,7 @@ def test_the_depth_test_hides_the_robot_only_where_the_object_is_nearer():
 def test_object_depths_come_from_the_recorded_placements(simulated):
     """Per row, its placement's object depth: finite over the object's pixels, inf elsewhere."""
     from types import SimpleNamespace
-    from softshape_ros.model.data import object_depths
+    from softshape_ros.experiments.object_depths import object_depths
     from softshape_ros.model.losses import object_loss
     ds = load_dataset(simulated.path)
     idx = np.arange(len(ds))
@@ -611,11 +611,11 @@ def test_object_depths_come_from_the_recorded_placements(simulated):
 
 def test_a_depth_test_model_learns_where_the_object_is(simulated, tmp_path):
     """A short training: ObjectNet finds the objects; the checkpoint loads and predicts."""
-    from softshape_ros.model.data import object_depths
+    from softshape_ros.experiments.object_depths import object_depths
     ds = load_dataset(simulated.path)
     cfg = TrainConfig(arch='tube', batch_size=16, max_steps=120, eval_every=40, patience=100,
                       seed=0, threads=1, split='scene', arch_params={'depth_test': True})
-    res = train(ds, cfg, out=tmp_path / 'ck', progress=False)
+    res = train(ds, cfg, out=tmp_path / 'ck', progress=False, object_depths=object_depths)
     model, saved = load_checkpoint(tmp_path / 'ck')
     assert saved['arch_params']['depth_test'] is True and model.depth_test
     assert model.visibility is None

@@ -31,6 +31,7 @@ def tube_options(args, command: str) -> dict:
 
 def _train(args) -> int:
     from softshape_ros.data import load_dataset
+    from softshape_ros.experiments.object_depths import object_depths
     from softshape_ros.model.train import TrainConfig, train
     arch_params = tube_options(args, 'train')
     ds = load_dataset(args.dataset)
@@ -42,7 +43,8 @@ def _train(args) -> int:
                       min_steps=args.min_steps, scene_batch=args.scene_batch,
                       freeze_scene=args.freeze_scene, warmup=args.warmup,
                       arch_params=arch_params)
-    res = train(ds, cfg, out=args.out, indices=rows, progress=not args.quiet)
+    res = train(ds, cfg, out=args.out, indices=rows, progress=not args.quiet,
+                object_depths=object_depths)
     summary = {'checkpoint': args.out, 'steps': res.steps,
                'val_rmse_255': res.val_rmse_255, 'copy_val_rmse_255': res.copy_val_rmse_255}
     if res.config['training']['world_size'] == 1 or _rank() == 0:

@@ -19,6 +19,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from softshape_ros.config import load_rig_config
+from softshape_ros.experiments.object_depths import object_depths
 from softshape_ros.model.train import HEAD_BATCH, TrainConfig, train_in_phases
 from softshape_ros.sim.generate import SPARSE_SHARE, TOWARD_SHARE
 
@@ -119,7 +120,8 @@ def pretrain(settings: PretrainSettings, out, work, progress: bool = True) -> di
                                   progress=progress, desc='pretrain',
                                   reader_steps=settings.reader_steps,
                                   head_steps=settings.head_steps,
-                                  head_batch=settings.head_batch)
+                                  head_batch=settings.head_batch,
+                                  object_depths=object_depths)
     seen = sum(r.rows_seen for r in phases.values())
     steps = {name: r.steps for name, r in phases.items()}
     secs = time.perf_counter() - t0

@@ -8,7 +8,6 @@ validation (or test) images show scenes the network has never seen.
 from __future__ import annotations
 
 import math
-import os
 
 import numpy as np
 import torch
@@ -137,7 +136,7 @@ def scene_targets(ds, idx):
     datasets built from bags: the session YAML's scenes). None where any row's placement
     is unknown: the tube model then learns the scene from the images alone.
     """
-    table = _placements(ds, idx)
+    table = placements(ds, idx)
     if table is None:
         return None
     ids = np.asarray(ds.scene)[np.sort(np.asarray(idx, dtype=np.int64))]
@@ -145,7 +144,7 @@ def scene_targets(ds, idx):
     return torch.tensor([vec[int(i)] for i in ids], dtype=torch.float32)
 
 
-def _placements(ds, idx) -> dict | None:
+def placements(ds, idx) -> dict | None:
     """Return {placement id: Scene} from the dataset's meta, or None if a row's is unknown."""
     scenes = ds.meta.get('scenes') if isinstance(ds.meta, dict) else None
     if not isinstance(scenes, list) or not scenes:
@@ -172,7 +171,8 @@ class ObjectDepths:
     Rows' object depth maps, one per placement: ``[idx]`` -> N x V x S x S float (inf: none).
 
     A placement's rows share its map, so it is held once (float16, a 20 000-row dataset of
-    10 000 placements in 160 MB) and rows index it.
+    10 000 placements in 160 MB) and rows index it. Made by
+    :func:`softshape_ros.experiments.object_depths.object_depths` (casting needs sim/).
     """
 
     def __init__(self, maps: torch.Tensor, row_map: torch.Tensor):
@@ -187,37 +187,3 @@ class ObjectDepths:
     def rows(self, idx) -> 'ObjectDepths':
         """Return the same maps for rows ``idx`` of these (a validation slice)."""
         return ObjectDepths(self.maps, self.row_map[idx])
-
-
-def object_depths(ds, idx, cfg=None, progress: bool = False) -> ObjectDepths | None:
-    """
-    Return rows ``idx`` (sorted, as :func:`to_tensors`) as :class:`ObjectDepths`, or None.
-
-    Cast from each placement the meta records through the rig's cameras
-    (:func:`~softshape_ros.sim.object_depth.object_depth`; ``cfg``: the rig config, else
-    the one the dataset was simulated or recorded with, else the package's). None where any
-    row's placement is unknown or the dataset's views are not the config's cameras.
-    """
-    from tqdm import tqdm
-    from softshape_ros.config import load_rig_config
-    from softshape_ros.sim.camera import PinholeCamera
-    from softshape_ros.sim.object_depth import object_depth
-    idx = np.sort(np.asarray(idx, dtype=np.int64))
-    table = _placements(ds, idx)
-    if table is None:
-        return None
-    if cfg is None:                 # simulate records its config, build-dataset the bags'
-        prov = ds.meta.get('provenance')
-        path = ds.meta.get('config') or (prov.get('config') if isinstance(prov, dict) else None)
-        cfg = load_rig_config(path if isinstance(path, str) and os.path.exists(path) else None)
-    if not all(v in cfg.cameras for v in ds.views):
-        return None
-    cams = [PinholeCamera.from_config(v, cfg.cameras[v]) for v in ds.views]
-    size = int(ds.meta.get('image_size', 64))
-    ids = np.asarray(ds.scene)[idx]
-    unique, row_map = np.unique(ids, return_inverse=True)
-    maps = np.empty((len(unique), len(cams), size, size), np.float16)
-    for k, sid in enumerate(tqdm(unique, desc='object depth', disable=not progress,
-                                 leave=False, dynamic_ncols=True)):
-        maps[k] = object_depth(cams, table[int(sid)], cfg.robot.base_position_m, size)
-    return ObjectDepths(torch.from_numpy(maps), torch.from_numpy(row_map))

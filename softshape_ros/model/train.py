@@ -28,7 +28,7 @@ from softshape_ros.model import data as model_data
 from softshape_ros.model import layers, losses, networks, tube_net, tube_render
 from softshape_ros.model.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from softshape_ros.model.data import (
-    object_depths, scene_targets, shape_tensors, split_indices, to_float, to_tensors)
+    scene_targets, shape_tensors, split_indices, to_float, to_tensors)
 from softshape_ros.model.losses import ImageLoss, PixelLoss, TubeLoss
 from softshape_ros.model.metrics import RobotSilhouette
 from softshape_ros.model.networks import build_network
@@ -47,7 +47,8 @@ def code_stamp() -> str:
     """Hash of the network, data and training code: results of other code are never reused."""
     files = (networks.__file__, layers.__file__, tube_net.__file__, tube_render.__file__,
              model_data.__file__, losses.__file__, __file__,
-             Path(model_data.__file__).parents[1] / 'sim' / 'object_depth.py')
+             *(Path(model_data.__file__).parents[1] / f for f in (
+                 'sim/object_depth.py', 'experiments/object_depths.py')))
     return hashlib.sha256(b''.join(Path(f).read_bytes() for f in files)).hexdigest()[:12]
 
 
@@ -162,16 +163,20 @@ def _all_sum(world: int, *vals) -> list:
 
 
 def train(dataset, config: TrainConfig, out=None, indices=None, progress: bool = True,
-          desc: str = 'train') -> TrainResult:
+          desc: str = 'train', object_depths=None) -> TrainResult:
     """
     Train on ``dataset`` (a path or loaded Dataset), rows ``indices`` (default all).
 
     The rows are split ``config.split`` into train/validation; the best-validation
     weights are kept, and written to ``out`` (a checkpoint folder) if given.
+    ``object_depths(ds, idx) -> data.ObjectDepths | None``: a depth-test tube model's
+    object targets (:func:`softshape_ros.experiments.object_depths.object_depths`; None:
+    its ObjectNet learns from the images alone).
     """
     rank, world, started = _dist()
     try:
-        return _train(dataset, config, out, indices, progress and rank == 0, desc, rank, world)
+        return _train(dataset, config, out, indices, progress and rank == 0, desc, rank, world,
+                      object_depths)
     finally:
         if started:
             dist.destroy_process_group()
@@ -186,7 +191,7 @@ READER_WARMUP = 0.3
 def train_in_phases(dataset, config: TrainConfig, keypoint_steps: int, first, out=None,
                     keypoint_scene_batch: int = 0, indices=None, progress: bool = True,
                     desc: str = 'train', reader_steps: int = 0, head_steps: int = 0,
-                    head_batch: int = HEAD_BATCH) -> tuple[dict, TrainResult]:
+                    head_batch: int = HEAD_BATCH, object_depths=None) -> tuple[dict, TrainResult]:
     """
     Train the tube model's recipe: up to three phases that draw nothing, then ``config``.
 
@@ -202,6 +207,7 @@ def train_in_phases(dataset, config: TrainConfig, keypoint_steps: int, first, ou
     starts from the one before and is written to its own folder: the keypoint phase to
     ``first``, the others beside it (``first`` + ``_reader``, ``_heads``). Returns the
     earlier phases' results by name (``reader``, ``keypoints``, ``heads``) and the last one.
+    ``object_depths``: as :func:`train` (only the last phase draws).
     """
     plan = (('reader', reader_steps, {'loss': 'scene', 'scene_batch': 0,
                                       'warmup': READER_WARMUP}),
@@ -217,10 +223,12 @@ def train_in_phases(dataset, config: TrainConfig, keypoint_steps: int, first, ou
         done[name] = train(dataset, replace(config, max_steps=steps, **change), out=folder,
                            indices=indices, progress=progress, desc=f'{desc} {name}')
         config = replace(config, init=str(folder))
-    return done, train(dataset, config, out=out, indices=indices, progress=progress, desc=desc)
+    return done, train(dataset, config, out=out, indices=indices, progress=progress, desc=desc,
+                       object_depths=object_depths)
 
 
-def _train(dataset, config, out, indices, progress, desc, rank, world) -> TrainResult:
+def _train(dataset, config, out, indices, progress, desc, rank, world,
+           object_depths=None) -> TrainResult:
     ds = load_dataset(dataset) if isinstance(dataset, (str, os.PathLike)) else dataset
     if config.threads:
         torch.set_num_threads(config.threads)
@@ -249,8 +257,8 @@ def _train(dataset, config, out, indices, progress, desc, rank, world) -> TrainR
                          f'not {config.arch!r} on {loss_kind!r}')
     lr = _learning_rate(config)
     copy_mse = _copy_mse(rows, world)
-    if getattr(net, 'depth_test', False) and _draws(objective):
-        rows = _with_object_depths(ds, rows, rank, world, progress)
+    if getattr(net, 'depth_test', False) and _draws(objective) and object_depths is not None:
+        rows = _with_object_depths(ds, rows, rank, world, progress, object_depths)
     if config.freeze_scene:
         rows = _encoded(net, rows)
     fit = _fit(net, rows, objective, config, lr, rank, world, progress, desc, copy_mse)
@@ -304,7 +312,7 @@ def _rows(ds, config, indices, rank, world) -> Rows:
                 (*val_shape, None), np.asarray(ds.scene)[np.sort(tr_idx)])
 
 
-def _with_object_depths(ds, rows, rank, world, progress) -> Rows:
+def _with_object_depths(ds, rows, rank, world, progress, object_depths) -> Rows:
     """Add the rows' object depth maps (a depth_test model's ObjectNet learns them)."""
     tr = object_depths(ds, rows.train_idx, progress=progress and rank == 0)
     va = object_depths(ds, rows.val_idx)
