@@ -78,9 +78,6 @@ class TubeWeights:
     background: float = 20.0    # L1 of the background where the true robot is not
     visibility: float = 1.0     # BCE of the visibility inside the true tube: is it dark?
     objects: float = 1.0        # depth_test: BCE of where the object is + 0.1 x its depth
-    # L1 of the predicted tube's coverage vs the true one's, hidden or not (a tube pushed
-    # into an object that hides it is paid for too)
-    coverage: float = 0.0
 
 
 #: Depth error (px) below which the object's depth term is quadratic (smooth L1).
@@ -173,8 +170,6 @@ class TubeLoss:
             return loss, out.image
         loss = loss + self._keypoints(out.keypoints, out.free_keypoints, truth, free, x.dtype)
         loss = loss + w.teacher * F.l1_loss(out.teacher, t)
-        if w.coverage:
-            loss = loss + w.coverage * F.l1_loss(out.coverage, out.teacher_coverage)
         # Where the true robot is not (one pixel clear of it) the target is the background.
         b, v, s, _ = out.teacher_coverage.shape
         clear = F.max_pool2d(out.teacher_coverage, 3, 1, 1) == 0            # B x V x S x S

@@ -67,7 +67,6 @@ class TubeOutput(NamedTuple):
     scene: torch.Tensor             # B x 17: the object as the scene code describes it
     occupancy: torch.Tensor | None = None     # B x V x S x S logits: the object (depth_test)
     object_depth: torch.Tensor | None = None  # B x V x S x S px: its front (depth_test)
-    coverage: torch.Tensor | None = None      # B x V x S x S: the predicted tube, unhidden
 
 
 class SceneParts(NamedTuple):
@@ -497,7 +496,7 @@ class TubeNet(nn.Module):
         # the robot (TubeLoss): through the composites, the robot's rim errors were paid for
         # by a fill turned white (0.998 against a 0.94 backdrop).
         bg = scene.background if truth is None else scene.background.detach()
-        out, alpha, cov_kp, _ = self.render(kp, image, bg, cond, scene.objects)
+        out, alpha, _, _ = self.render(kp, image, bg, cond, scene.objects)
         if not parts:
             return out
         teacher, _, cov, vis = (None,) * 4 if truth is None else self.render(
@@ -505,4 +504,4 @@ class TubeNet(nn.Module):
         occ, obj_depth = (scene.objects.split(self.views, 1) if self.depth_test
                           else (None, None))
         return TubeOutput(out, kp, free, scene.background, alpha, teacher, cov, vis,
-                          scene.described, occ, obj_depth, cov_kp)
+                          scene.described, occ, obj_depth)
