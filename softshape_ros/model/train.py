@@ -313,12 +313,23 @@ def _rows(ds, config, indices, rank, world) -> Rows:
 
 
 def _with_object_depths(ds, rows, rank, world, progress, object_depths) -> Rows:
-    """Add the rows' object depth maps (a depth_test model's ObjectNet learns them)."""
-    tr = object_depths(ds, rows.train_idx, progress=progress and rank == 0)
-    va = object_depths(ds, rows.val_idx)
+    """
+    Add the rows' object depth maps (a depth_test model's ObjectNet learns them).
+
+    Cast once for training and validation rows together: under a random split they share
+    placements, and each placement's map is cast once.
+    """
+    every = np.sort(np.concatenate([rows.train_idx, rows.val_idx]))
+    maps = object_depths(ds, every, progress=progress and rank == 0)
+    if maps is None:
+        return rows
+
+    def at(idx):                    # positions of rows ``idx`` (sorted) among ``every``
+        return torch.from_numpy(np.searchsorted(every, np.sort(idx)))
+
     vs = slice(rank * len(rows.val_idx) // world, (rank + 1) * len(rows.val_idx) // world)
-    return replace(rows, train_shape=(*rows.train_shape[:3], tr),
-                   val_shape=(*rows.val_shape[:3], None if va is None else va.rows(vs)))
+    return replace(rows, train_shape=(*rows.train_shape[:3], maps.rows(at(rows.train_idx))),
+                   val_shape=(*rows.val_shape[:3], maps.rows(at(rows.val_idx)[vs])))
 
 
 def _network(ds, config, rows, sil):
