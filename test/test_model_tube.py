@@ -523,20 +523,30 @@ def test_tube_trains_under_torchrun_with_two_processes(simulated, tmp_path):
 
 
 def test_reproduce_trains_tube_in_its_two_phases_beside_paper_and_ours(tmp_path):
+    from softshape_ros.experiments.object_depths import object_depths
     from softshape_ros.model.reproduce import ReproConfig, reproduce
     ds, _ = generate(CFG, make_plan(CFG, 60, 6, seed=7), tmp_path / 'ds', ['main', 'side'],
                      workers=1, progress=False)
     cfg = ReproConfig(sizes=[24], max_steps=2, eval_every=1, patience=5, threads=1,
                       tube_keypoint_steps=3, tube_eval_every=1)
     out, work = tmp_path / 'repro', tmp_path / 'work'
+    cast = []
+
+    def counted(ds, idx, **kw):
+        cast.append(len(idx))
+        return object_depths(ds, idx, **kw)
+
     with pytest.raises(ValueError, match='unknown architecture tub'):
         reproduce(ds.path, out, cfg, work=work, archs=['tub'])
     table = reproduce(ds.path, out, cfg, work=work, splits=['scene'], views=['stereo'],
-                      archs=['paper', 'ours', 'tube'])
+                      archs=['paper', 'ours', 'tube'], object_depths=counted)
     run = json.loads((out / 'runs' / 'scene_stereo_tube_24.json').read_text())
     assert run['keypoint_steps'] == 3 and run['steps'] == 2 and run['test_rows'] == 10
     first, _ = load_checkpoint(work / 'scene_stereo_tube_24_keypoints')
     second, cfg_loaded = load_checkpoint(work / 'scene_stereo_tube_24')
+    # The grid's tube is the shipped recipe's: the depth test, its ObjectNet trained.
+    assert cfg_loaded['arch_params']['depth_test'] and second.objects is not None
+    assert cast == [24]             # once, for the full phase's training + validation rows
     # The second phase started from the first, at the tube's own batch size.
     assert cfg_loaded['training']['init_from'] == str(work / 'scene_stereo_tube_24_keypoints')
     assert cfg_loaded['training']['batch_size'] == 64 and cfg_loaded['training']['loss'] == 'tube'

@@ -90,7 +90,8 @@ def _reproduce(args) -> int:
     sizes = [int(s) for s in args.sizes.split(',')]
     cfg = ReproConfig(sizes=sizes, test_fraction=args.test_fraction, seed=args.seed,
                       max_steps=args.max_steps, patience=args.patience,
-                      eval_every=args.eval_every, threads=args.threads)
+                      eval_every=args.eval_every, threads=args.threads,
+                      tube_depth_test=args.depth_test)
     table = reproduce_with_sweep(args.dataset, args.out, cfg, work=args.work,
                                  sweep=not args.no_fig4c, splits=args.splits.split(','),
                                  views=args.views.split(','), archs=args.archs.split(','))
@@ -189,6 +190,9 @@ def register(sub) -> None:
     p.add_argument('--archs', default='paper,ours',
                    help='train only these networks here (paper, ours, tube)')
     p.add_argument('--no-fig4c', action='store_true', help='skip the object-distance sweep')
+    p.add_argument('--depth-test', action=argparse.BooleanOptionalAction, default=True,
+                   help='tube: hide the robot by a depth test, as the shipped recipe '
+                        '(docs/model.md, "A depth test"); --no-depth-test: the recipe before')
     p.set_defaults(func=_reproduce)
 
     from softshape_ros.experiments.distance_sweep import SUPERSAMPLE

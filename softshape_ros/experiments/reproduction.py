@@ -15,7 +15,8 @@ from softshape_ros.model.reproduce import _key, reproduce
 
 def reproduce_with_sweep(dataset, out, cfg, work=None, sweep: bool = True, **grid) -> str:
     """Run (or resume) the grid, then the distance sweep into ``results.json``; return table."""
-    table = reproduce(dataset, out, cfg, work=work, **grid)
+    from softshape_ros.experiments.object_depths import object_depths
+    table = reproduce(dataset, out, cfg, work=work, object_depths=object_depths, **grid)
     out = Path(out)
     results = json.loads((out / 'results.json').read_text())
     ck = Path(results['work']) / _key('random', 'stereo', 'ours', max(cfg.sizes))

@@ -59,6 +59,9 @@ class ReproConfig:
     tube_scene_batch: int = 16
     tube_batch_size: int = 64
     tube_eval_every: int = 50
+    # tube: hide the robot by a depth test against a learned object map, as the shipped
+    # recipe does (docs/model.md, "A depth test"); False: the learned visibility before it
+    tube_depth_test: bool = True
 
 
 def select_views(ds: Dataset, n: int) -> Dataset:
@@ -88,15 +91,19 @@ def _key(split, views, arch, size) -> str:
     return f'{split}_{views}_{arch}_{size}'
 
 
-def _fit_and_score(ds, rows, test, tc, ckpt, sil, desc, cfg: ReproConfig) -> dict:
+def _fit_and_score(ds, rows, test, tc, ckpt, sil, desc, cfg: ReproConfig,
+                   object_depths=None) -> dict:
     t0 = time.perf_counter()
     phases = {}
     if tc.arch == 'tube':
         kp = cfg.tube_keypoint_steps if getattr(ds, 'shape', None) is not None else 0
+        params = {'depth_test': True} if cfg.tube_depth_test else {}
         phases, res = train_in_phases(
-            ds, replace(tc, batch_size=cfg.tube_batch_size, eval_every=cfg.tube_eval_every),
+            ds, replace(tc, batch_size=cfg.tube_batch_size, eval_every=cfg.tube_eval_every,
+                        arch_params=params),
             kp, ckpt.with_name(ckpt.name + '_keypoints'), out=ckpt,
-            keypoint_scene_batch=cfg.tube_scene_batch, indices=rows, desc=desc)
+            keypoint_scene_batch=cfg.tube_scene_batch, indices=rows, desc=desc,
+            object_depths=object_depths)
     else:
         res = train(ds, tc, out=ckpt, indices=rows, desc=desc)
     secs = time.perf_counter() - t0
@@ -110,13 +117,14 @@ def _fit_and_score(ds, rows, test, tc, ckpt, sil, desc, cfg: ReproConfig) -> dic
 
 
 def reproduce(dataset, out, cfg: ReproConfig | None = None, work=None,
-              splits=SPLITS, views=VIEWS, archs=DEFAULT_ARCHS) -> str:
+              splits=SPLITS, views=VIEWS, archs=DEFAULT_ARCHS, object_depths=None) -> str:
     """
     Run (or resume) the grid; write table.md, results.json and figures to ``out``.
 
     Only ``splits`` x ``views`` x ``archs`` are trained here (two processes can share the
     grid, one split each); the table and figures use every cached run of this dataset and
-    budget.
+    budget. ``object_depths``: the depth-test tube's object targets, as ``train`` takes
+    them (:func:`softshape_ros.experiments.object_depths.object_depths`).
     """
     cfg = cfg or ReproConfig()
     for name, given, known in (('split', splits, SPLITS), ('views', views, VIEWS),
@@ -158,7 +166,7 @@ def reproduce(dataset, out, cfg: ReproConfig | None = None, work=None,
                          eval_every=cfg.eval_every, patience=cfg.patience,
                          threads=cfg.threads)
         m = _fit_and_score(sets[view], train_rows[size], test, tc, work / key,
-                           sils[view], key, cfg)
+                           sils[view], key, cfg, object_depths)
         m.update(stamp=stamp, split=split, views=view, arch=arch, size=size,
                  test_rows=int(len(test)), checkpoint=str(work / key))
         cache.write_text(json.dumps(m, indent=2))
