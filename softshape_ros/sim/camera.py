@@ -52,6 +52,21 @@ class PinholeCamera:
         return np.column_stack([self.fx * pc[:, 0] / z + self.cx,
                                 self.fy * pc[:, 1] / z + self.cy, z])
 
+    def input_depth_px(self, z, z_base, size: int) -> np.ndarray:
+        """
+        Return camera depths ``z`` (m) as the shape record's depth: px further than ``z_base``.
+
+        The unit is a pixel of the ``size`` x ``size`` input image (its crop resampled) at
+        the base's depth, focal length x (z / z_base - 1), so depths compare with the
+        keypoints' x, y and radius (``generate.measure_shape``, ``object_depth``).
+        """
+        return self.input_focal_px(size) * (np.asarray(z, dtype=float) / z_base - 1.0)
+
+    def input_focal_px(self, size: int) -> float:
+        """Return the focal length (px) of the ``size`` x ``size`` input image of the crop."""
+        _, _, w, h = self.crop
+        return 0.5 * (self.fx * size / w + self.fy * size / h)
+
     def grid(self, region=None, out_size=None):
         """
         Return (u0, du, v0, dv, W, H): a pixel grid over ``region`` = [x, y, w, h].

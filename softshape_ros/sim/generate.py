@@ -342,11 +342,10 @@ def measure_shape(state, cameras, size: int, k: int = SHAPE_KEYPOINTS):
     for v, cam in enumerate(cameras):
         x0, y0, w, h = cam.crop
         uvz = cam.project(pts)
-        f = 0.5 * (cam.fx * size / w + cam.fy * size / h)
         kp[v, :, 0] = (uvz[:, 0] - x0 + 0.5) * size / w - 0.5
         kp[v, :, 1] = (uvz[:, 1] - y0 + 0.5) * size / h - 0.5
-        radius[v] = f * rad / uvz[:, 2]
-        depth[v] = f * (uvz[:, 2] / uvz[0, 2] - 1.0)
+        radius[v] = cam.input_focal_px(size) * rad / uvz[:, 2]
+        depth[v] = cam.input_depth_px(uvz[:, 2], uvz[0, 2], size)
     return kp.astype(np.float32), radius.astype(np.float32), depth.astype(np.float32)
 
 

@@ -34,12 +34,10 @@ def object_depth(cameras: list[PinholeCamera], scene: Scene | None, base_m, size
         return out
     base = np.asarray(base_m, dtype=float).reshape(1, 3)
     for v, cam in enumerate(cameras):
-        x0, y0, w, h = cam.crop
-        f = 0.5 * (cam.fx * size / w + cam.fy * size / h)
         z_base = cam.project(base)[0, 2]
         rays = cam.rays(cam.grid(cam.crop, (size, size))).reshape(-1, 3)
         t, _ = obj.raycast(cam.position, rays)
         hit = np.isfinite(t)
         z = (t[hit, None] * rays[hit]) @ cam.R[:, 2]                 # camera-frame depth
-        out[v].reshape(-1)[hit] = f * (z / z_base - 1.0)
+        out[v].reshape(-1)[hit] = cam.input_depth_px(z, z_base, size)
     return out
