@@ -81,11 +81,16 @@ def test_distance_sweep_cli_writes_numbers_and_figure(tmp_path, capsys):
 def test_pretrain_tube_runs_its_two_phases_and_reuses_the_data(tmp_path, capsys):
     """`softshape pretrain --arch tube`: the keypoint phase, then the full loss from it."""
     from softshape_ros.cli import main as cli
+    from softshape_ros.experiments.pretrain import PretrainSettings
     from softshape_ros.model import load_checkpoint
     args = ['pretrain', '--arch', 'tube', '--out', str(tmp_path / 'ck'), '--work',
             str(tmp_path / 'work'), '--samples', '40', '--scenes', '4', '--keypoint-steps', '3',
             '--max-steps', '2', '--batch-size', '8', '--eval-every', '1', '--threads', '1',
-            '--workers', '1', '--quiet']
+            '--workers', '1', '--quiet', '--reader-steps', '0', '--head-steps', '0']
+    # The shipped recipe's phases: reader, keypoints, heads, full (docs/model.md).
+    recipe = PretrainSettings.for_arch('tube')
+    assert (recipe.reader_steps, recipe.keypoint_steps, recipe.head_steps, recipe.max_steps,
+            recipe.depth_test) == (6000, 10000, 20000, 1200, True)
     assert cli(args) == 0
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert out['keypoint_steps'] == 3 and out['steps'] == 2

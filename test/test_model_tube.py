@@ -476,6 +476,9 @@ def test_the_visibility_reads_the_scene_code_and_older_checkpoints_still_load(tm
     shipped, cfg = load_checkpoint(PRETRAINED)
     assert shipped.depth_test and cfg['arch_params']['depth_test'] is True
     assert shipped.visibility is None and cfg['arch_params']['scene_visibility'] is True
+    # ... and comes from the recipe with the reader phases: its full loss started from the
+    # heads phase (docs/model.md, "A reader first, with the depth test").
+    assert cfg['training']['init_from'].endswith('tube_keypoints_heads')
     # A checkpoint made before (no scene_visibility in its arch_params) gets the
     # pressure-only visibility it was trained with, and predicts as it did.
     legacy = build_network('tube', 2, 1).eval()

@@ -68,8 +68,12 @@ class PretrainSettings:
 #: (docs/model.md: 1000 samples over 100 placements overfit them; 2000 placements for
 #: 20 000 samples still leave a gap between seen and unseen ones, 10 000 narrow it), and
 #: data is cheap. The keypoint phase takes 16 whole placements a batch, each encoded once.
-TUBE = {'samples': 20000, 'scenes': 10000, 'keypoint_steps': 10000, 'keypoint_scene_batch': 16,
-        'max_steps': 1200, 'eval_every': 400, 'patience': 100, 'depth_test': True}
+#: A reader phase first (the scene encoder alone against the placement) and a heads phase
+#: after it (the keypoint heads on frozen codes): seeing the placement and fitting the push
+#: each get their own budget (docs/model.md, "A reader first, with the depth test").
+TUBE = {'samples': 20000, 'scenes': 10000, 'reader_steps': 6000, 'keypoint_steps': 10000,
+        'keypoint_scene_batch': 16, 'head_steps': 20000, 'max_steps': 1200, 'eval_every': 400,
+        'patience': 100, 'depth_test': True}
 
 
 def simulated_dataset(settings: PretrainSettings, work, progress: bool = True):
