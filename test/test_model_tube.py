@@ -547,9 +547,10 @@ def test_reproduce_trains_tube_in_its_two_phases_beside_paper_and_ours(tmp_path)
     assert run['keypoint_steps'] == 3 and run['steps'] == 2 and run['test_rows'] == 10
     first, _ = load_checkpoint(work / 'scene_stereo_tube_24_keypoints')
     second, cfg_loaded = load_checkpoint(work / 'scene_stereo_tube_24')
-    # The grid's tube is the shipped recipe's: the depth test, its ObjectNet trained.
+    # The grid's tube composes as the shipped recipe's does: the depth test, its object
+    # maps cast once for the full phase's training + validation rows.
     assert cfg_loaded['arch_params']['depth_test'] and second.objects is not None
-    assert cast == [24]             # once, for the full phase's training + validation rows
+    assert cast == [24]
     # The second phase started from the first, at the tube's own batch size.
     assert cfg_loaded['training']['init_from'] == str(work / 'scene_stereo_tube_24_keypoints')
     assert cfg_loaded['training']['batch_size'] == 64 and cfg_loaded['training']['loss'] == 'tube'

@@ -60,7 +60,8 @@ class ReproConfig:
     tube_batch_size: int = 64
     tube_eval_every: int = 50
     # tube: hide the robot by a depth test against a learned object map, as the shipped
-    # recipe does (docs/model.md, "A depth test"); False: the learned visibility before it
+    # recipe's composite does (docs/model.md, "A depth test"); False: the learned
+    # visibility before it. The grid runs no reader phases (its budget, above).
     tube_depth_test: bool = True
 
 
