@@ -128,7 +128,8 @@ def test_pretrain_tube_runs_its_two_phases_and_reuses_the_data(tmp_path, capsys)
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])[
         'settings']['supersample'] == [0, 3]
     # A reader phase first and a heads phase last: each starts from the one before.
-    assert cli(args + ['--reader-steps', '2', '--head-steps', '3', '--head-batch', '8']) == 0
+    assert cli(args + ['--reader-steps', '2', '--head-steps', '3', '--head-batch', '8',
+                       '--scene-batch', '2']) == 0
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert (out['reader_steps'], out['keypoint_steps'], out['head_steps']) == (2, 3, 3)
     work = tmp_path / 'work'
@@ -142,3 +143,6 @@ def test_pretrain_tube_runs_its_two_phases_and_reuses_the_data(tmp_path, capsys)
                                                    str(work / 'tube_keypoints')]
     _, cfg = load_checkpoint(tmp_path / 'ck')
     assert cfg['training']['init_from'] == str(work / 'tube_keypoints_heads')
+    # --scene-batch is the full phase's alone: whole placements, each encoded once a batch.
+    assert [c['scene_batch'] for c in chain] == [0, 16, 0]
+    assert cfg['training']['scene_batch'] == 2

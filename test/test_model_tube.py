@@ -333,6 +333,46 @@ def test_scene_batches_hold_whole_placements_and_encode_each_once(simulated, mon
         train(ds, TrainConfig(arch='tube', scene_batch=-1), progress=False)
 
 
+def test_validation_encodes_each_placement_once(simulated, monkeypatch):
+    """Validation rows come in placements: each one's scene parts run once, same numbers."""
+    from softshape_ros.model import train as train_mod
+    from softshape_ros.model.losses import TubeLoss
+    from softshape_ros.model.tube_net import SceneEncoder, scenes_shared
+    ds = load_dataset(simulated.path)
+    net = build_network('tube', len(ds.views), ds.channels, depth_test=True).eval()
+    with torch.no_grad():
+        for q in net.parameters():
+            q.add_(0.05 * torch.randn_like(q))
+    rows = np.array([0, 1, 2, 30, 31, 60, 61])
+    x8 = torch.from_numpy(np.asarray(ds.initial)[rows].reshape(len(rows), -1, 64, 64))
+    t8 = torch.from_numpy(np.asarray(ds.target)[rows].reshape(len(rows), -1, 64, 64))
+    scene = scene_targets(ds, rows)
+    val, extra = (x8, t8, torch.rand(len(rows), 6)), (None, None, scene, None)
+    distinct = len(set(np.asarray(ds.scene)[rows].tolist()))
+    assert distinct < len(rows)
+    seen = []
+    forward = SceneEncoder.forward
+    monkeypatch.setattr(SceneEncoder, 'forward',
+                        lambda self, image: seen.append(len(image)) or forward(self, image))
+    for objective in (TubeLoss(), TubeLoss(scene_only=True)):
+        shared = train_mod._validate(net, val, extra, objective)
+        assert seen[-1] == distinct
+        with torch.no_grad():           # the plain path: every row encoded
+            lo, y = objective(net, val[0].float() / 255, val[2], val[1].float() / 255,
+                              scene=scene)
+        assert seen[-1] == len(rows)
+        assert shared[1] == pytest.approx(float(lo) * len(rows), rel=1e-5)
+        if y is not None:
+            assert shared[0] == pytest.approx(float(((y - t8 / 255.0) ** 2).sum()), rel=1e-5)
+    # Outside validation a batch without gradients is one scene's (inference, export).
+    with torch.no_grad():
+        net(x8.float() / 255, val[2])
+    assert seen[-1] == len(rows)
+    with torch.no_grad(), scenes_shared():
+        net(x8.float() / 255, val[2])
+    assert seen[-1] == distinct
+
+
 def test_the_rate_warms_up_then_follows_its_cosine(simulated):
     """TrainConfig.warmup: a linear rise from 1/25, then the cosine; 0 is the plain cosine."""
     from softshape_ros.model.train import _rate

@@ -102,7 +102,7 @@ def _reproduce(args) -> int:
 def _pretrain(args) -> int:
     from softshape_ros.experiments.pretrain import PretrainSettings, pretrain
     s = PretrainSettings.for_arch(args.arch, **{k: getattr(args, k) for k in (
-        'samples', 'scenes', 'seed', 'max_steps', 'batch_size', 'lr', 'eval_every',
+        'samples', 'scenes', 'seed', 'max_steps', 'batch_size', 'scene_batch', 'lr', 'eval_every',
         'patience', 'threads', 'workers', 'keypoint_steps', 'keypoint_scene_batch',
         'reader_steps', 'head_steps', 'head_batch',
         'toward_share', 'sparse_share', 'far_share', 'outline', 'depth_test',
@@ -210,7 +210,7 @@ def register(sub) -> None:
     for flag, typ in (('samples', int), ('scenes', int), ('seed', int), ('max-steps', int),
                       ('keypoint-steps', int), ('keypoint-scene-batch', int),
                       ('reader-steps', int), ('head-steps', int), ('head-batch', int),
-                      ('batch-size', int), ('lr', float),
+                      ('batch-size', int), ('scene-batch', int), ('lr', float),
                       ('eval-every', int), ('patience', int), ('threads', int),
                       ('toward-share', float), ('sparse-share', float),
                       ('far-share', float), ('supersample', supersample_arg)):

@@ -34,6 +34,9 @@ class PretrainSettings:
     seed: int = 0
     max_steps: int = 700
     batch_size: int = 64            # more updates per sample than 256 at this budget
+    # > 0: the last phase's batches are this many whole placements (TrainConfig.scene_batch;
+    # 0: batch_size rows): the tube model then encodes each placement once a batch.
+    scene_batch: int = 0
     lr: float = 2e-3
     eval_every: int = 100
     patience: int = 10
@@ -116,7 +119,7 @@ def pretrain(settings: PretrainSettings, out, work, progress: bool = True) -> di
                       batch_size=settings.batch_size, lr=settings.lr,
                       max_steps=settings.max_steps, eval_every=settings.eval_every,
                       patience=settings.patience, threads=settings.threads,
-                      arch_params=tube_params)
+                      scene_batch=settings.scene_batch, arch_params=tube_params)
     t0 = time.perf_counter()
     phases, res = train_in_phases(ds, cfg, settings.keypoint_steps,
                                   Path(work) / f'{settings.arch}_keypoints', out=out,

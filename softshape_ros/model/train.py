@@ -32,7 +32,7 @@ from softshape_ros.model.data import (
 from softshape_ros.model.losses import ImageLoss, PixelLoss, TubeLoss
 from softshape_ros.model.metrics import RobotSilhouette
 from softshape_ros.model.networks import build_network
-from softshape_ros.model.tube_net import TubeNet, rest_template
+from softshape_ros.model.tube_net import TubeNet, rest_template, scenes_shared
 
 
 # Adam learning rates, each network's best on the simulated stereo sets of the design
@@ -442,7 +442,7 @@ def _validate(net, val, extra, objective, chunk=256):
     """
     x8, t8, p = val
     sse = loss = 0.0
-    with torch.no_grad():
+    with torch.no_grad(), scenes_shared():       # a placement's rows: its scene parts once
         for i in range(0, len(x8), chunk):
             x, t = to_float(x8[i:i + chunk]), to_float(t8[i:i + chunk])
             lo, y = objective(net, x, p[i:i + chunk], t, *_take(extra, slice(i, i + chunk)))

@@ -32,6 +32,8 @@ loss alone: the renderer is differentiable.
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 from typing import NamedTuple
 
 import torch
@@ -89,16 +91,37 @@ def mlp(cin: int, hidden: int, cout: int, zero_last: bool = True) -> nn.Sequenti
     return net
 
 
+#: True within :func:`scenes_shared`.
+_SHARED = contextvars.ContextVar('scenes_shared', default=False)
+
+
+@contextlib.contextmanager
+def scenes_shared():
+    """
+    Within it, :func:`per_scene` runs once per distinct rest image without gradients too.
+
+    For validation: its rows come in placements (two actuations each in the shipped data),
+    and each placement's scene parts cost the same again for every row. Inference and
+    export stay on the plain path (a prediction is one scene; ``TubeNet.cache``).
+    """
+    token = _SHARED.set(True)
+    try:
+        yield
+    finally:
+        _SHARED.reset(token)
+
+
 def per_scene(fn, image: torch.Tensor) -> tuple:
     """
     Return ``fn(image)`` (a tuple of B x ... tensors), run once per distinct rest image.
 
     Rows of one placement share their rest images, and what is made of those alone (the
     scene code, the background) is the same for each: a batch of whole placements
-    (``TrainConfig.scene_batch``) pays for the placements, not the rows.
+    (``TrainConfig.scene_batch``) pays for the placements, not the rows. Without gradients
+    only within :func:`scenes_shared` (validation).
     """
-    if not torch.is_grad_enabled() or torch.compiler.is_compiling():   # inference, export
-        return tuple(fn(image))
+    if torch.compiler.is_compiling() or not (torch.is_grad_enabled() or _SHARED.get()):
+        return tuple(fn(image))                                    # inference, export
     unique, inverse = torch.unique(image.flatten(1), dim=0, return_inverse=True)
     if len(unique) == len(image):
         return tuple(fn(image))
