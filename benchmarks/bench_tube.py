@@ -2,12 +2,14 @@
 The tube model: its renderer, one full-loss training step and its predictions, one thread.
 
 What the 20 000-sample pre-training and ``softshape evaluate`` spend their time on (issue
-18: train to early stopping in <= 30 min). Data: 128 stereo samples of the default
+18: train to early stopping in <= 30 min); the reader step also with the encoder in
+bfloat16 (``--encoder-bf16``). Data: 128 stereo samples of the default
 contact-rich plan over 8 placements, simulated here (shape record, contact record and
 placements, as training sees them, and the object depth maps where the network has the
 depth test); network: the shipped checkpoint (``run(checkpoint)``: another).
 """
 
+import contextlib
 import tempfile
 from pathlib import Path
 
@@ -21,6 +23,7 @@ from softshape_ros.model import Predictor
 from softshape_ros.experiments.object_depths import object_depths
 from softshape_ros.model.data import scene_targets, shape_tensors, to_tensors
 from softshape_ros.model.losses import TubeLoss
+from softshape_ros.model.tube_net import encoder_bf16
 from softshape_ros.model.tube_render import tube_field
 from softshape_ros.sim.generate import generate, make_plan
 
@@ -66,6 +69,27 @@ def run(checkpoint=PRETRAINED) -> dict:
         s = _median_s(step, 6)
         out['full_loss_step_s'] = round(s, 3)
         out['full_loss_rows_per_s'] = round(BATCH / s, 1)
+
+        # The reader phase's step (the scene term alone: the encoder), float32 and with its
+        # convolutions in bfloat16 (TrainConfig.encoder_bf16), alternated. Its batches of
+        # 64 rows hold about 64 placements, these 8: each row made its own by faint noise.
+        reader = TubeLoss(scene_only=True, channels=1)
+        xr = x + 1e-3 * torch.rand(x.shape, generator=torch.Generator().manual_seed(0))
+
+        def reader_step(bf16):
+            net.train()
+            with encoder_bf16() if bf16 else contextlib.nullcontext():
+                loss, _ = reader(net, xr, p, t, truth, free, scene, objects)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+        times = {False: [], True: []}
+        for _ in range(3):
+            for bf16 in (False, True):
+                times[bf16].append(_median_s(lambda: reader_step(bf16), 4))
+        out['reader_step_s'] = round(float(np.median(times[False])), 4)
+        out['reader_step_bf16_s'] = round(float(np.median(times[True])), 4)
+        out['cpu_bf16_supported'] = bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
         net.eval()
         initial = np.asarray(ds.initial[:BATCH])
         pressures = list(np.asarray(ds.pressure[:BATCH]))

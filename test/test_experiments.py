@@ -129,7 +129,7 @@ def test_pretrain_tube_runs_its_two_phases_and_reuses_the_data(tmp_path, capsys)
         'settings']['supersample'] == [0, 3]
     # A reader phase first and a heads phase last: each starts from the one before.
     assert cli(args + ['--reader-steps', '2', '--head-steps', '3', '--head-batch', '8',
-                       '--scene-batch', '2']) == 0
+                       '--scene-batch', '2', '--encoder-bf16']) == 0
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert (out['reader_steps'], out['keypoint_steps'], out['head_steps']) == (2, 3, 3)
     work = tmp_path / 'work'
@@ -146,3 +146,6 @@ def test_pretrain_tube_runs_its_two_phases_and_reuses_the_data(tmp_path, capsys)
     # --scene-batch is the full phase's alone: whole placements, each encoded once a batch.
     assert [c['scene_batch'] for c in chain] == [0, 16, 0]
     assert cfg['training']['scene_batch'] == 2
+    # --encoder-bf16: every phase's steps (the heads' frozen codes are made in float32).
+    assert [c['encoder_bf16'] for c in chain] == [True] * 3
+    assert cfg['training']['encoder_bf16'] and out['settings']['encoder_bf16']

@@ -72,6 +72,11 @@ def test_cli_train_evaluate_export(tmp_path, capsys):
     with pytest.raises(SystemExit, match='--outline is a tube model option'):
         cli(['train', '--dataset', str(ds.path), '--out', str(ck), '--arch', 'ours',
              '--outline'])
+    assert cli(['train', '--dataset', str(ds.path), '--out', str(tmp_path / 'no'), '--arch',
+                'ours', '--encoder-bf16', '--max-steps', '1']) == 2
+    assert "encoder_bf16 trains the tube model's scene encoder; 'ours' has none" in \
+        capsys.readouterr().err
+    assert not (tmp_path / 'no').exists()
     assert cli(['evaluate', '--checkpoint', str(ck), '--dataset', str(ds.path),
                 '--validation', '--out', str(tmp_path / 'ev')]) == 0
     res = json.loads(capsys.readouterr().out)

@@ -2,6 +2,7 @@
 
 import json
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -371,6 +372,45 @@ def test_validation_encodes_each_placement_once(simulated, monkeypatch):
     with torch.no_grad(), scenes_shared():
         net(x8.float() / 255, val[2])
     assert seen[-1] == distinct
+
+
+def test_the_encoder_runs_in_bf16_only_where_training_asks(simulated, monkeypatch):
+    """encoder_bf16: the training steps' convolutions in bfloat16; validation and use float32."""
+    from softshape_ros.model import tube_net
+    from softshape_ros.model.tube_net import SceneEncoder, encoder_bf16
+    torch.manual_seed(0)
+    enc = SceneEncoder(2, 64).eval()
+    image = torch.rand(4, 2, 64, 64)
+    with torch.no_grad():
+        plain = enc(image)
+        with encoder_bf16():
+            low = enc(image)
+        again = enc(image)
+    assert all(torch.equal(a, b) for a, b in zip(plain, again))   # the context leaves nothing
+    assert all(t.dtype == torch.float32 for t in low)              # what it feeds stays float32
+    assert not torch.equal(plain[0], low[0])                        # computed in bfloat16 ...
+    torch.testing.assert_close(low[0], plain[0], atol=0.05, rtol=0.05)   # ... to its precision
+    # In training, the steps run within the context, validation outside it.
+    seen, forward = [], SceneEncoder.forward
+
+    def spy(self, image):
+        seen.append((torch.is_grad_enabled(), tube_net._BF16.get()))
+        return forward(self, image)
+
+    monkeypatch.setattr(SceneEncoder, 'forward', spy)
+    ds = load_dataset(simulated.path)
+    cfg = TrainConfig(arch='tube', loss='scene', max_steps=4, eval_every=2, patience=100,
+                      seed=0, threads=1, split='scene', batch_size=16, encoder_bf16=True)
+    res = train(ds, cfg, progress=False)
+    assert {bf for grad, bf in seen if grad} == {True}         # every step in bfloat16
+    assert {bf for grad, bf in seen if not grad} == {False}    # every validation not
+    assert all(p.dtype == torch.float32 for p in res.model.parameters())
+    assert res.config['training']['encoder_bf16'] is True
+    seen.clear()
+    train(ds, replace(cfg, encoder_bf16=False), progress=False)
+    assert {bf for _, bf in seen} == {False}
+    with pytest.raises(ValueError, match="encoder_bf16.*'ours' has none"):
+        train(ds, TrainConfig(arch='ours', max_steps=2, encoder_bf16=True), progress=False)
 
 
 def test_the_rate_warms_up_then_follows_its_cosine(simulated):

@@ -53,6 +53,7 @@ class PretrainSettings:
     far_share: float = 0.0          # placements beyond reach (make_plan)
     outline: bool = False           # tube: the learned outline (TubeNet(outline=True))
     depth_test: bool = False        # tube: the robot hidden by a depth test (TubeNet)
+    encoder_bf16: bool = False      # tube: the scene encoder's convolutions in bfloat16
     # The simulated images' samples per pixel a side (0: the camera's own pixels; several:
     # a mix, each placement rendered with one).
     supersample: int | tuple = 3
@@ -112,14 +113,16 @@ def simulated_dataset(settings: PretrainSettings, work, progress: bool = True):
 def pretrain(settings: PretrainSettings, out, work, progress: bool = True) -> dict:
     """Simulate (or reuse) the data, train ``settings.arch``, write the checkpoint to ``out``."""
     tube_params = {k: True for k in ('outline', 'depth_test') if getattr(settings, k)}
-    if tube_params and settings.arch != 'tube':
-        raise ValueError(f'{", ".join(tube_params)}: tube model options, not {settings.arch!r}')
+    tube_only = [*tube_params, *(['encoder_bf16'] if settings.encoder_bf16 else [])]
+    if tube_only and settings.arch != 'tube':
+        raise ValueError(f'{", ".join(tube_only)}: tube model options, not {settings.arch!r}')
     ds = simulated_dataset(settings, work, progress)
     cfg = TrainConfig(arch=settings.arch, seed=settings.seed, split='scene',
                       batch_size=settings.batch_size, lr=settings.lr,
                       max_steps=settings.max_steps, eval_every=settings.eval_every,
                       patience=settings.patience, threads=settings.threads,
-                      scene_batch=settings.scene_batch, arch_params=tube_params)
+                      scene_batch=settings.scene_batch, arch_params=tube_params,
+                      encoder_bf16=settings.encoder_bf16)
     t0 = time.perf_counter()
     phases, res = train_in_phases(ds, cfg, settings.keypoint_steps,
                                   Path(work) / f'{settings.arch}_keypoints', out=out,

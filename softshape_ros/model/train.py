@@ -11,6 +11,7 @@ model pre-trained on simulation on recorded bags).
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import hashlib
 import math
@@ -32,7 +33,7 @@ from softshape_ros.model.data import (
 from softshape_ros.model.losses import ImageLoss, PixelLoss, TubeLoss
 from softshape_ros.model.metrics import RobotSilhouette
 from softshape_ros.model.networks import build_network
-from softshape_ros.model.tube_net import TubeNet, rest_template, scenes_shared
+from softshape_ros.model.tube_net import TubeNet, encoder_bf16, rest_template, scenes_shared
 
 
 # Adam learning rates, each network's best on the simulated stereo sets of the design
@@ -80,6 +81,10 @@ class TrainConfig:
     freeze_scene: bool = False
     # Share of max_steps over which the rate rises linearly to lr before its cosine (0: none).
     warmup: float = 0.0
+    # tube: the scene encoder's convolutions in bfloat16 during training steps (autocast;
+    # validation and the checkpoint's use stay float32): about half a reader step's time on
+    # a CPU with AVX-512 BF16 (docs/model.md, "The encoder in bfloat16").
+    encoder_bf16: bool = False
     arch_params: dict = field(default_factory=dict)
 
 
@@ -252,6 +257,9 @@ def _train(dataset, config, out, indices, progress, desc, rank, world,
     else:
         objective = PixelLoss(ImageLoss(loss_kind, ds.channels, sil.threshold / 255,
                                         config.silhouette_weight))
+    if config.encoder_bf16 and not isinstance(net, TubeNet):
+        raise ValueError(f'encoder_bf16 trains the tube model\'s scene encoder; '
+                         f'{config.arch!r} has none')
     if config.freeze_scene and loss_kind != 'keypoints':
         raise ValueError(f'freeze_scene trains the tube keypoint heads on the keypoint loss, '
                          f'not {config.arch!r} on {loss_kind!r}')
@@ -484,8 +492,9 @@ def _fit(net, rows, objective, config, lr, rank, world, progress, desc, copy_mse
                            rows.train_scene if config.scene_batch else None):
             b = gb[rank * len(gb) // world:(rank + 1) * len(gb) // world]
             net.train()
-            loss, _ = objective(model, to_float(xt[b]), pt[b], to_float(tt[b]),
-                                *_take(rows.train_shape, b))
+            with encoder_bf16() if config.encoder_bf16 else contextlib.nullcontext():
+                loss, _ = objective(model, to_float(xt[b]), pt[b], to_float(tt[b]),
+                                    *_take(rows.train_shape, b))
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
