@@ -17,9 +17,9 @@ OUTLINE_HELP = ("tube: learn how far out of the keypoints' radius the drawn outl
                 'per view (off in the shipped recipe; docs/model.md, "The outline")')
 DEPTH_TEST_HELP = ('tube: hide the robot where a learned map of the object puts it nearer than '
                    'the tube (docs/model.md, "A depth test")')
-ENCODER_BF16_HELP = ("tube: train the scene encoder's convolutions in bfloat16 (about half a "
-                     'reader step on a CPU with AVX-512 BF16; the checkpoint stays float32; '
-                     'docs/model.md, "The encoder in bfloat16")')
+ENCODER_BF16_HELP = ("tube: train the scene encoder's convolutions in bfloat16 (a reader step "
+                     'in about 0.6 of the time on a CPU with AVX-512 BF16; the checkpoint '
+                     'stays float32; docs/model.md, "The encoder in bfloat16")')
 
 
 def tube_options(args, command: str) -> dict:

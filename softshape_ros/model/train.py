@@ -82,8 +82,8 @@ class TrainConfig:
     # Share of max_steps over which the rate rises linearly to lr before its cosine (0: none).
     warmup: float = 0.0
     # tube: the scene encoder's convolutions in bfloat16 during training steps (autocast;
-    # validation and the checkpoint's use stay float32): about half a reader step's time on
-    # a CPU with AVX-512 BF16 (docs/model.md, "The encoder in bfloat16").
+    # validation and the checkpoint's use stay float32): a reader step in about 0.6 of the
+    # time on a CPU with AVX-512 BF16 (docs/model.md, "The encoder in bfloat16").
     encoder_bf16: bool = False
     arch_params: dict = field(default_factory=dict)
 

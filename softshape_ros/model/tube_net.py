@@ -121,7 +121,7 @@ def encoder_bf16():
     Within it, :class:`SceneEncoder` runs its convolutions in bfloat16 (autocast).
 
     For training steps (``TrainConfig.encoder_bf16``): the convolutions are nearly all of a
-    reader step's time, and take half as long in bfloat16 on a CPU with AVX-512 BF16.
+    reader step's time, and take about 0.6 as long in bfloat16 on a CPU with AVX-512 BF16.
     What they feed (the code's MLP, the keypoint heads, the renderer) stays float32, as do
     validation, inference and export, outside the context.
     """
