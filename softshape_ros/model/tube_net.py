@@ -197,7 +197,7 @@ class SceneEncoder(nn.Module):
         x = (image - self.mean_image) / self.std_image               # B x VC x S x S
         with torch.autocast(x.device.type, dtype=torch.bfloat16, enabled=_BF16.get()):
             f = self.convs(x)                                        # B x 128 x S/16 x S/16
-        z = self.code(f.float().flatten(1))                          # B x code
+        z = self.code(f.to(x.dtype).flatten(1))                      # B x code
         return z, self.mean + self.spread * self.describe(z)         # B x 17
 
 
