@@ -9,7 +9,6 @@ placements, as training sees them, and the object depth maps where the network h
 depth test); network: the shipped checkpoint (``run(checkpoint)``: another).
 """
 
-import contextlib
 import tempfile
 from pathlib import Path
 
@@ -78,7 +77,7 @@ def run(checkpoint=PRETRAINED) -> dict:
 
         def reader_step(bf16):
             net.train()
-            with encoder_bf16() if bf16 else contextlib.nullcontext():
+            with encoder_bf16(bf16):
                 loss, _ = reader(net, xr, p, t, truth, free, scene, objects)
             opt.zero_grad(set_to_none=True)
             loss.backward()

@@ -112,8 +112,8 @@ def simulated_dataset(settings: PretrainSettings, work, progress: bool = True):
 
 def pretrain(settings: PretrainSettings, out, work, progress: bool = True) -> dict:
     """Simulate (or reuse) the data, train ``settings.arch``, write the checkpoint to ``out``."""
-    tube_params = {k: True for k in ('outline', 'depth_test') if getattr(settings, k)}
-    tube_only = [*tube_params, *(['encoder_bf16'] if settings.encoder_bf16 else [])]
+    tube_only = [k for k in ('outline', 'depth_test', 'encoder_bf16') if getattr(settings, k)]
+    tube_params = {k: True for k in tube_only if k != 'encoder_bf16'}   # the network's
     if tube_only and settings.arch != 'tube':
         raise ValueError(f'{", ".join(tube_only)}: tube model options, not {settings.arch!r}')
     ds = simulated_dataset(settings, work, progress)

@@ -11,7 +11,6 @@ model pre-trained on simulation on recorded bags).
 
 from __future__ import annotations
 
-import contextlib
 import copy
 import hashlib
 import math
@@ -492,7 +491,7 @@ def _fit(net, rows, objective, config, lr, rank, world, progress, desc, copy_mse
                            rows.train_scene if config.scene_batch else None):
             b = gb[rank * len(gb) // world:(rank + 1) * len(gb) // world]
             net.train()
-            with encoder_bf16() if config.encoder_bf16 else contextlib.nullcontext():
+            with encoder_bf16(config.encoder_bf16):
                 loss, _ = objective(model, to_float(xt[b]), pt[b], to_float(tt[b]),
                                     *_take(rows.train_shape, b))
             opt.zero_grad(set_to_none=True)

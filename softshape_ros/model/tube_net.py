@@ -93,9 +93,20 @@ def mlp(cin: int, hidden: int, cout: int, zero_last: bool = True) -> nn.Sequenti
 
 #: True within :func:`scenes_shared`.
 _SHARED = contextvars.ContextVar('scenes_shared', default=False)
+#: True within :func:`encoder_bf16`.
+_BF16 = contextvars.ContextVar('encoder_bf16', default=False)
 
 
 @contextlib.contextmanager
+def _set(flag: contextvars.ContextVar, value: bool = True):
+    """Give ``flag`` ``value`` within the context, and back its value after it."""
+    token = flag.set(value)
+    try:
+        yield
+    finally:
+        flag.reset(token)
+
+
 def scenes_shared():
     """
     Within it, :func:`per_scene` runs once per distinct rest image without gradients too.
@@ -104,32 +115,19 @@ def scenes_shared():
     and each placement's scene parts cost the same again for every row. Inference and
     export stay on the plain path (a prediction is one scene; ``TubeNet.cache``).
     """
-    token = _SHARED.set(True)
-    try:
-        yield
-    finally:
-        _SHARED.reset(token)
+    return _set(_SHARED)
 
 
-#: True within :func:`encoder_bf16`.
-_BF16 = contextvars.ContextVar('encoder_bf16', default=False)
-
-
-@contextlib.contextmanager
-def encoder_bf16():
+def encoder_bf16(enabled: bool = True):
     """
-    Within it, :class:`SceneEncoder` runs its convolutions in bfloat16 (autocast).
+    Within it (if ``enabled``), :class:`SceneEncoder` runs its convolutions in bfloat16.
 
     For training steps (``TrainConfig.encoder_bf16``): the convolutions are nearly all of a
     reader step's time, and take about 0.6 as long in bfloat16 on a CPU with AVX-512 BF16.
     What they feed (the code's MLP, the keypoint heads, the renderer) stays float32, as do
     validation, inference and export, outside the context.
     """
-    token = _BF16.set(True)
-    try:
-        yield
-    finally:
-        _BF16.reset(token)
+    return _set(_BF16, bool(enabled))
 
 
 def per_scene(fn, image: torch.Tensor) -> tuple:
