@@ -22,7 +22,7 @@ from softshape_ros.model import Predictor
 from softshape_ros.experiments.object_depths import object_depths
 from softshape_ros.model.data import scene_targets, shape_tensors, to_tensors
 from softshape_ros.model.losses import TubeLoss
-from softshape_ros.model.tube_net import encoder_bf16
+from softshape_ros.model.tube_net import cpu_bf16_native, encoder_bf16
 from softshape_ros.model.tube_render import tube_field
 from softshape_ros.sim.generate import generate, make_plan
 
@@ -88,7 +88,7 @@ def run(checkpoint=PRETRAINED) -> dict:
                 times[bf16].append(_median_s(lambda: reader_step(bf16), 4))
         out['reader_step_s'] = round(float(np.median(times[False])), 4)
         out['reader_step_bf16_s'] = round(float(np.median(times[True])), 4)
-        out['cpu_bf16_supported'] = bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+        out['cpu_bf16_supported'] = cpu_bf16_native()
         net.eval()
         initial = np.asarray(ds.initial[:BATCH])
         pressures = list(np.asarray(ds.pressure[:BATCH]))

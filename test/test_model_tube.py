@@ -413,6 +413,19 @@ def test_the_encoder_runs_in_bf16_only_where_training_asks(simulated, monkeypatc
         train(ds, TrainConfig(arch='ours', max_steps=2, encoder_bf16=True), progress=False)
 
 
+def test_bf16_instructions_are_read_from_the_cpu_flags(tmp_path):
+    """cpu_bf16_native: the bfloat16 instructions, not just AVX-512 (which torch's check reads)."""
+    from softshape_ros.model.tube_net import cpu_bf16_native
+    info = tmp_path / 'cpuinfo'
+    info.write_text('flags\t\t: fpu sse avx2 avx512f avx512bw avx512vl avx512dq\n')
+    assert cpu_bf16_native(info) is False
+    info.write_text('flags\t\t: fpu avx512bw avx512_bf16 avx512_vnni\n')
+    assert cpu_bf16_native(info) is True
+    info.write_text('Features\t: fp asimd sve bf16 i8mm\n')           # aarch64
+    assert cpu_bf16_native(info) is True
+    assert isinstance(cpu_bf16_native(tmp_path / 'missing'), bool)   # not Linux: torch's answer
+
+
 def test_the_rate_warms_up_then_follows_its_cosine(simulated):
     """TrainConfig.warmup: a linear rise from 1/25, then the cosine; 0 is the plain cosine."""
     from softshape_ros.model.train import _rate
@@ -559,6 +572,7 @@ def test_the_visibility_reads_the_scene_code_and_older_checkpoints_still_load(tm
     # ... and comes from the recipe with the reader phases: its full loss started from the
     # heads phase (docs/model.md, "A reader first, with the depth test").
     assert cfg['training']['init_from'].endswith('tube_keypoints_heads')
+    assert cfg['training']['encoder_bf16'] is True     # "The encoder in bfloat16": shipped
     # A checkpoint made before (no scene_visibility in its arch_params) gets the
     # pressure-only visibility it was trained with, and predicts as it did.
     legacy = build_network('tube', 2, 1).eval()

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
+from pathlib import Path
 from typing import NamedTuple
 
 import torch
@@ -128,6 +129,21 @@ def encoder_bf16(enabled: bool = True):
     validation, inference and export, outside the context.
     """
     return _set(_BF16, bool(enabled))
+
+
+def cpu_bf16_native(cpuinfo: str = '/proc/cpuinfo') -> bool:
+    """
+    Whether this CPU has bfloat16 instructions (x86 AVX-512 BF16 or AMX, Arm BF16).
+
+    Where it has not, :func:`encoder_bf16` may cost time instead of saving it (oneDNN
+    emulates them). ``torch.ops.mkldnn._is_mkldnn_bf16_supported`` is no answer: it is
+    true on any AVX-512 CPU. Without ``cpuinfo`` (not Linux): that answer.
+    """
+    try:
+        flags = set(Path(cpuinfo).read_text().split())
+    except OSError:
+        return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+    return bool(flags & {'avx512_bf16', 'amx_bf16', 'bf16'})
 
 
 def per_scene(fn, image: torch.Tensor) -> tuple:
