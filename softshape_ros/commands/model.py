@@ -226,7 +226,8 @@ def register(sub) -> None:
     p.add_argument('--depth-test', action=argparse.BooleanOptionalAction, default=None,
                    help=DEPTH_TEST_HELP + '; default on for tube (the shipped recipe)')
     p.add_argument('--encoder-bf16', action=argparse.BooleanOptionalAction, default=None,
-                   help=ENCODER_BF16_HELP)
+                   help=ENCODER_BF16_HELP + '; default on for tube (the shipped recipe), '
+                   '--no-encoder-bf16: float32')
     p.add_argument('--quiet', action='store_true', help='no progress bars')
     p.set_defaults(func=_pretrain)
 
