@@ -131,7 +131,7 @@ def encoder_bf16(enabled: bool = True):
     return _set(_BF16, bool(enabled))
 
 
-def cpu_bf16_native(cpuinfo: str = '/proc/cpuinfo') -> bool:
+def cpu_bf16_native(cpuinfo: str | Path = '/proc/cpuinfo') -> bool:
     """
     Whether this CPU has bfloat16 instructions (x86 AVX-512 BF16 or AMX, Arm BF16).
 
