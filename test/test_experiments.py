@@ -91,7 +91,7 @@ def test_pretrain_tube_runs_its_two_phases_and_reuses_the_data(tmp_path, capsys,
     # The shipped recipe's phases: reader, keypoints, heads, full (docs/model.md).
     recipe = PretrainSettings.for_arch('tube')
     assert (recipe.reader_steps, recipe.keypoint_steps, recipe.head_steps, recipe.max_steps,
-            recipe.depth_test, recipe.encoder_bf16) == (6000, 10000, 20000, 1200, True, True)
+            recipe.depth_test, recipe.encoder_bf16) == (6000, 10000, 20000, 2400, True, True)
     assert cli(args) == 0
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert out['keypoint_steps'] == 3 and out['steps'] == 2

@@ -573,6 +573,7 @@ def test_the_visibility_reads_the_scene_code_and_older_checkpoints_still_load(tm
     # heads phase (docs/model.md, "A reader first, with the depth test").
     assert cfg['training']['init_from'].endswith('tube_keypoints_heads')
     assert cfg['training']['encoder_bf16'] is True     # "The encoder in bfloat16": shipped
+    assert cfg['training']['steps'] == 2400             # "A longer full phase": shipped
     # A checkpoint made before (no scene_visibility in its arch_params) gets the
     # pressure-only visibility it was trained with, and predicts as it did.
     legacy = build_network('tube', 2, 1).eval()
