@@ -65,8 +65,8 @@ def test_cli_train_evaluate_export(tmp_path, capsys):
     ds = make_dataset(tmp_path / 'ds', 60, 6, views=('main', 'side'), seed=7)
     ck = tmp_path / 'ck'
     assert cli(['train', '--dataset', str(ds.path), '--out', str(ck), '--arch', 'ours',
-                '--split', 'scene', '--batch-size', '16', '--max-steps', '20',
-                '--eval-every', '5', '--threads', '1', '--quiet']) == 0
+                '--split', 'scene', '--val-fraction', '0.5', '--batch-size', '16',
+                '--max-steps', '20', '--eval-every', '5', '--threads', '1', '--quiet']) == 0
     summary = json.loads(capsys.readouterr().out)
     assert summary['steps'] <= 20 and summary['val_rmse_255'] > 0
     with pytest.raises(SystemExit, match='--outline is a tube model option'):
@@ -80,7 +80,8 @@ def test_cli_train_evaluate_export(tmp_path, capsys):
     assert cli(['evaluate', '--checkpoint', str(ck), '--dataset', str(ds.path),
                 '--validation', '--out', str(tmp_path / 'ev')]) == 0
     res = json.loads(capsys.readouterr().out)
-    assert res['samples'] < 60 and set(res['model']) == set(res['copy'])
+    # --val-fraction 0.5: half the six placements (ten rows each) held out.
+    assert res['samples'] == 30 and set(res['model']) == set(res['copy'])
     # No contact record in this dataset: unsplit metrics, and metrics.json says why.
     saved = json.loads((tmp_path / 'ev' / 'metrics.json').read_text())
     assert saved['split'].startswith('none') and 'touching' not in saved

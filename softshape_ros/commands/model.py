@@ -45,6 +45,7 @@ def _train(args) -> int:
                       threads=args.threads, loss=args.loss, init=args.init,
                       min_steps=args.min_steps, scene_batch=args.scene_batch,
                       freeze_scene=args.freeze_scene, warmup=args.warmup,
+                      val_fraction=args.val_fraction,
                       encoder_bf16=args.encoder_bf16, arch_params=arch_params)
     res = train(ds, cfg, out=args.out, indices=rows, progress=not args.quiet,
                 object_depths=object_depths)
@@ -107,7 +108,7 @@ def _pretrain(args) -> int:
     s = PretrainSettings.for_arch(args.arch, **{k: getattr(args, k) for k in (
         'samples', 'scenes', 'seed', 'max_steps', 'batch_size', 'scene_batch', 'lr', 'eval_every',
         'patience', 'threads', 'workers', 'keypoint_steps', 'keypoint_scene_batch',
-        'reader_steps', 'head_steps', 'head_batch',
+        'reader_steps', 'head_steps', 'head_batch', 'val_fraction',
         'toward_share', 'sparse_share', 'far_share', 'outline', 'depth_test',
         'encoder_bf16', 'supersample')})
     out = args.out or f'models/{args.arch}_stereo_gray'
@@ -133,6 +134,8 @@ def register(sub) -> None:
     p.add_argument('--arch', choices=ARCHS, default='ours')
     p.add_argument('--split', choices=('random', 'scene'), default='random',
                    help='validation rows: random 20%% (paper) or whole held-out scenes')
+    p.add_argument('--val-fraction', type=float, default=0.2,
+                   help='the held-out share of the rows (random) or scenes (scene)')
     p.add_argument('--seed', type=int, default=0)
     p.add_argument('--rows', type=int, default=None, help='use only the first N rows')
     p.add_argument('--batch-size', type=int, default=256)
@@ -216,7 +219,7 @@ def register(sub) -> None:
                       ('reader-steps', int), ('head-steps', int), ('head-batch', int),
                       ('batch-size', int), ('scene-batch', int), ('lr', float),
                       ('eval-every', int), ('patience', int), ('threads', int),
-                      ('toward-share', float), ('sparse-share', float),
+                      ('val-fraction', float), ('toward-share', float), ('sparse-share', float),
                       ('far-share', float), ('supersample', supersample_arg)):
         p.add_argument(f'--{flag}', type=typ, default=None,
                        help=f'default {getattr(d, flag.replace("-", "_"))} (ours)')

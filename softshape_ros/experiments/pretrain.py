@@ -42,6 +42,9 @@ class PretrainSettings:
     lr: float = 2e-3
     eval_every: int = 100
     patience: int = 10
+    # Placements held out to validate the last phase (tube: the phases before it hold out
+    # PHASE_VAL_FRACTION; the same seeded permutation, so theirs include these).
+    val_fraction: float = 0.2
     threads: int = 2
     workers: int = 0
     arch: str = 'ours'
@@ -84,6 +87,8 @@ class PretrainSettings:
 TUBE = {'samples': 20000, 'scenes': 10000, 'reader_steps': 6000, 'keypoint_steps': 10000,
         'keypoint_scene_batch': 16, 'head_steps': 20000, 'max_steps': 2400, 'eval_every': 400,
         'patience': 100, 'depth_test': True, 'encoder_bf16': True}
+#: The held-out share of the tube recipe's phases before the full one (as they were measured).
+PHASE_VAL_FRACTION = 0.2
 
 
 def simulated_dataset(settings: PretrainSettings, work, progress: bool = True):
@@ -126,11 +131,15 @@ def pretrain(settings: PretrainSettings, out, work, progress: bool = True) -> di
         warnings.warn('encoder_bf16: this CPU has no native bfloat16 (AVX-512 BF16 or AMX); '
                       'its convolutions may run slower than in float32. --no-encoder-bf16 '
                       'trains in float32 (not the shipped checkpoint\'s recipe)', stacklevel=2)
+    if not 0.0 < settings.val_fraction < 1.0:
+        raise ValueError(f'val_fraction {settings.val_fraction}: the held-out share of the '
+                         'placements, in (0, 1)')
     ds = simulated_dataset(settings, work, progress)
     cfg = TrainConfig(arch=settings.arch, seed=settings.seed, split='scene',
                       batch_size=settings.batch_size, lr=settings.lr,
                       max_steps=settings.max_steps, eval_every=settings.eval_every,
                       patience=settings.patience, threads=settings.threads,
+                      val_fraction=settings.val_fraction,
                       scene_batch=settings.scene_batch, arch_params=tube_params,
                       encoder_bf16=settings.encoder_bf16)
     t0 = time.perf_counter()
@@ -141,6 +150,7 @@ def pretrain(settings: PretrainSettings, out, work, progress: bool = True) -> di
                                   reader_steps=settings.reader_steps,
                                   head_steps=settings.head_steps,
                                   head_batch=settings.head_batch,
+                                  phase_val_fraction=PHASE_VAL_FRACTION,
                                   object_depths=object_depths)
     seen = sum(r.rows_seen for r in phases.values())
     steps = {name: r.steps for name, r in phases.items()}

@@ -195,7 +195,8 @@ READER_WARMUP = 0.3
 def train_in_phases(dataset, config: TrainConfig, keypoint_steps: int, first, out=None,
                     keypoint_scene_batch: int = 0, indices=None, progress: bool = True,
                     desc: str = 'train', reader_steps: int = 0, head_steps: int = 0,
-                    head_batch: int = HEAD_BATCH, object_depths=None) -> tuple[dict, TrainResult]:
+                    head_batch: int = HEAD_BATCH, phase_val_fraction: float | None = None,
+                    object_depths=None) -> tuple[dict, TrainResult]:
     """
     Train the tube model's recipe: up to three phases that draw nothing, then ``config``.
 
@@ -211,6 +212,8 @@ def train_in_phases(dataset, config: TrainConfig, keypoint_steps: int, first, ou
     starts from the one before and is written to its own folder: the keypoint phase to
     ``first``, the others beside it (``first`` + ``_reader``, ``_heads``). Returns the
     earlier phases' results by name (``reader``, ``keypoints``, ``heads``) and the last one.
+    ``phase_val_fraction``: the held-out share of the phases before the last (None:
+    ``config``'s); the split being seeded, a smaller last share holds out a subset of theirs.
     ``object_depths``: as :func:`train` (only the last phase draws).
     """
     plan = (('reader', reader_steps, {'loss': 'scene', 'scene_batch': 0,
@@ -220,9 +223,11 @@ def train_in_phases(dataset, config: TrainConfig, keypoint_steps: int, first, ou
             ('heads', head_steps, {'loss': 'keypoints', 'freeze_scene': True,
                                    'batch_size': head_batch, 'scene_batch': 0}))
     done = {}
+    early = {} if phase_val_fraction is None else {'val_fraction': phase_val_fraction}
     for name, steps, change in plan:
         if not steps:
             continue
+        change = {**early, **change}
         folder = Path(first) if name == 'keypoints' else Path(f'{first}_{name}')
         done[name] = train(dataset, replace(config, max_steps=steps, **change), out=folder,
                            indices=indices, progress=progress, desc=f'{desc} {name}')
