@@ -92,6 +92,7 @@ def test_pretrain_tube_runs_its_two_phases_and_reuses_the_data(tmp_path, capsys,
     recipe = PretrainSettings.for_arch('tube')
     assert (recipe.reader_steps, recipe.keypoint_steps, recipe.head_steps, recipe.max_steps,
             recipe.depth_test, recipe.encoder_bf16) == (6000, 10000, 20000, 2400, True, True)
+    assert recipe.val_fraction == 0.05          # the full phase's held-out placements
     assert cli(args + ['--val-fraction', '0']) != 0          # refused before simulating
     assert 'val_fraction 0.0: the held-out share' in capsys.readouterr().err
     assert not (tmp_path / 'work').exists()
@@ -109,7 +110,7 @@ def test_pretrain_tube_runs_its_two_phases_and_reuses_the_data(tmp_path, capsys,
     _, first = load_checkpoint(tmp_path / 'work' / 'tube_keypoints')
     assert first['training']['loss'] == 'keypoints' and first['training']['steps'] == 3
     # The full phase holds out fewer placements than the phases before it.
-    assert (first['training']['val_fraction'], cfg['training']['val_fraction']) == (0.2, 0.2)
+    assert (first['training']['val_fraction'], cfg['training']['val_fraction']) == (0.2, 0.05)
     assert first['training']['best_val_mse'] is None          # the keypoint phase draws nothing
     assert out['val_rmse_255'] > 0
     data = next((tmp_path / 'work').glob('sim_40_4_0'))

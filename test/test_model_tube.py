@@ -574,6 +574,8 @@ def test_the_visibility_reads_the_scene_code_and_older_checkpoints_still_load(tm
     assert cfg['training']['init_from'].endswith('tube_keypoints_heads')
     assert cfg['training']['encoder_bf16'] is True     # "The encoder in bfloat16": shipped
     assert cfg['training']['steps'] == 2400             # "A longer full phase": shipped
+    # "The full phase on more placements": shipped (5 % of them held out, 1000 rows).
+    assert cfg['training']['val_fraction'] == 0.05 and cfg['dataset']['val'] == 1000
     # A checkpoint made before (no scene_visibility in its arch_params) gets the
     # pressure-only visibility it was trained with, and predicts as it did.
     legacy = build_network('tube', 2, 1).eval()
