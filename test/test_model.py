@@ -35,7 +35,7 @@ def test_scene_split_holds_out_whole_scenes():
     assert len(kept) + len(held) == 70
     assert not set(scene[kept]) & set(scene[held])
     assert len(set(scene[held])) == 2
-    # A smaller share with the same seed holds out some of the same scenes (the tube
+    # A smaller share with the same seed holds out a subset of those scenes (the tube
     # recipe's full phase validates on placements its earlier phases never trained on).
     _, fewer = split_indices(scene, np.arange(70), 'scene', 0.05, seed=3)
     assert len(set(scene[fewer])) == 1 and set(fewer) < set(held)

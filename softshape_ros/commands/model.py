@@ -133,7 +133,8 @@ def register(sub) -> None:
     p.add_argument('--out', required=True, help='checkpoint folder to write')
     p.add_argument('--arch', choices=ARCHS, default='ours')
     p.add_argument('--split', choices=('random', 'scene'), default='random',
-                   help='validation rows: random 20%% (paper) or whole held-out scenes')
+                   help='validation rows: random ones (the paper: 20%%) or whole held-out '
+                        'scenes; --val-fraction gives the share')
     p.add_argument('--val-fraction', type=float, default=0.2,
                    help='the held-out share of the rows (random) or scenes (scene)')
     p.add_argument('--seed', type=int, default=0)
