@@ -134,10 +134,6 @@ def pretrain(settings: PretrainSettings, out, work, progress: bool = True) -> di
         warnings.warn('encoder_bf16: this CPU has no native bfloat16 (AVX-512 BF16 or AMX); '
                       'its convolutions may run slower than in float32. --no-encoder-bf16 '
                       'trains in float32 (not the shipped checkpoint\'s recipe)', stacklevel=2)
-    if not 0.0 < settings.val_fraction < 1.0:
-        raise ValueError(f'val_fraction {settings.val_fraction}: the held-out share of the '
-                         'placements, in (0, 1)')
-    ds = simulated_dataset(settings, work, progress)
     cfg = TrainConfig(arch=settings.arch, seed=settings.seed, split='scene',
                       batch_size=settings.batch_size, lr=settings.lr,
                       max_steps=settings.max_steps, eval_every=settings.eval_every,
@@ -145,6 +141,7 @@ def pretrain(settings: PretrainSettings, out, work, progress: bool = True) -> di
                       val_fraction=settings.val_fraction,
                       scene_batch=settings.scene_batch, arch_params=tube_params,
                       encoder_bf16=settings.encoder_bf16)
+    ds = simulated_dataset(settings, work, progress)
     t0 = time.perf_counter()
     phases, res = train_in_phases(ds, cfg, settings.keypoint_steps,
                                   Path(work) / f'{settings.arch}_keypoints', out=out,

@@ -86,6 +86,12 @@ class TrainConfig:
     encoder_bf16: bool = False
     arch_params: dict = field(default_factory=dict)
 
+    def __post_init__(self):
+        # Here, not in train(): a recipe that simulates its data first fails before that.
+        if not 0.0 < self.val_fraction < 1.0:
+            raise ValueError(f'val_fraction {self.val_fraction}: the held-out share of the '
+                             'rows or placements, in (0, 1)')
+
 
 @dataclass
 class TrainResult:
