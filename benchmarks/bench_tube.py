@@ -3,10 +3,12 @@ The tube model: its renderer, one full-loss training step and its predictions, o
 
 What the 20 000-sample pre-training and ``softshape evaluate`` spend their time on (issue
 18: train to early stopping in <= 30 min); the reader step also with the encoder in
-bfloat16 (``--encoder-bf16``). Data: 128 stereo samples of the default
-contact-rich plan over 8 placements, simulated here (shape record, contact record and
-placements, as training sees them, and the object depth maps where the network has the
-depth test); network: the shipped checkpoint (``run(checkpoint)``: another).
+bfloat16 (``--encoder-bf16``), the full-loss step also with the encoder in bfloat16 as the
+recipe trains it, and with ObjectNet and BackgroundNet too (``--scene-nets-bf16``). Data:
+128 stereo samples of the default contact-rich plan over 8 placements, simulated here
+(shape record, contact record and placements, as training sees them, and the object depth
+maps where the network has the depth test); network: the shipped checkpoint
+(``run(checkpoint)``: another).
 """
 
 import tempfile
@@ -22,7 +24,7 @@ from softshape_ros.model import Predictor
 from softshape_ros.experiments.object_depths import object_depths
 from softshape_ros.model.data import scene_targets, shape_tensors, to_tensors
 from softshape_ros.model.losses import TubeLoss
-from softshape_ros.model.tube_net import cpu_bf16_native, encoder_bf16
+from softshape_ros.model.tube_net import cpu_bf16_native, encoder_bf16, scene_nets_bf16
 from softshape_ros.model.tube_render import tube_field
 from softshape_ros.sim.generate import generate, make_plan
 
@@ -88,6 +90,23 @@ def run(checkpoint=PRETRAINED) -> dict:
                 times[bf16].append(_median_s(lambda: reader_step(bf16), 4))
         out['reader_step_s'] = round(float(np.median(times[False])), 4)
         out['reader_step_bf16_s'] = round(float(np.median(times[True])), 4)
+
+        # The full-loss step on distinct rows (as the recipe's batches of 64 rows), with the
+        # encoder in bfloat16, and with ObjectNet and BackgroundNet too, alternated.
+
+        def full_step(nets):
+            net.train()
+            with encoder_bf16(True), scene_nets_bf16(nets):
+                loss, _ = objective(net, xr, p, t, truth, free, scene, objects)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+        times = {False: [], True: []}
+        for _ in range(3):
+            for nets in (False, True):
+                times[nets].append(_median_s(lambda: full_step(nets), 3))
+        out['full_loss_step_encoder_bf16_s'] = round(float(np.median(times[False])), 3)
+        out['full_loss_step_scene_nets_bf16_s'] = round(float(np.median(times[True])), 3)
         out['cpu_bf16_supported'] = cpu_bf16_native()
         net.eval()
         initial = np.asarray(ds.initial[:BATCH])

@@ -92,6 +92,7 @@ def test_pretrain_tube_runs_its_two_phases_and_reuses_the_data(tmp_path, capsys,
     recipe = PretrainSettings.for_arch('tube')
     assert (recipe.reader_steps, recipe.keypoint_steps, recipe.head_steps, recipe.max_steps,
             recipe.depth_test, recipe.encoder_bf16) == (6000, 10000, 20000, 2400, True, True)
+    assert recipe.scene_nets_bf16 is False       # measured, not the default ("The scene nets")
     assert recipe.val_fraction == 0.05          # the full phase's held-out placements
     assert cli(args + ['--val-fraction', '0']) != 0          # refused before simulating
     assert 'val_fraction 0.0: the held-out share' in capsys.readouterr().err
@@ -107,6 +108,7 @@ def test_pretrain_tube_runs_its_two_phases_and_reuses_the_data(tmp_path, capsys,
     assert out['settings']['depth_test'] is True and cfg['arch_params']['depth_test'] is True
     assert model.depth_test and model.visibility is None
     assert cfg['training']['encoder_bf16'] is True          # the recipe's default
+    assert cfg['training']['scene_nets_bf16'] is False
     _, first = load_checkpoint(tmp_path / 'work' / 'tube_keypoints')
     assert first['training']['loss'] == 'keypoints' and first['training']['steps'] == 3
     # The full phase holds out fewer placements than the phases before it.
@@ -141,9 +143,10 @@ def test_pretrain_tube_runs_its_two_phases_and_reuses_the_data(tmp_path, capsys,
     # CPU without bfloat16 instructions the recipe says it may be slower, and trains anyway.
     import softshape_ros.experiments.pretrain as pretrain_module
     monkeypatch.setattr(pretrain_module, 'cpu_bf16_native', lambda: False)
-    with pytest.warns(UserWarning, match='no native bfloat16.*--no-encoder-bf16'):
+    with pytest.warns(UserWarning, match='no native bfloat16.*--no-encoder-bf16 '
+                                         '--no-scene-nets-bf16 trains in float32'):
         assert cli(args + ['--reader-steps', '2', '--head-steps', '3', '--head-batch', '8',
-                           '--scene-batch', '2', '--encoder-bf16']) == 0
+                           '--scene-batch', '2', '--encoder-bf16', '--scene-nets-bf16']) == 0
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert (out['reader_steps'], out['keypoint_steps'], out['head_steps']) == (2, 3, 3)
     work = tmp_path / 'work'
@@ -163,3 +166,4 @@ def test_pretrain_tube_runs_its_two_phases_and_reuses_the_data(tmp_path, capsys,
     # --encoder-bf16: every phase's steps (the heads' frozen codes are made in float32).
     assert [c['encoder_bf16'] for c in chain] == [True] * 3
     assert cfg['training']['encoder_bf16'] and out['settings']['encoder_bf16']
+    assert cfg['training']['scene_nets_bf16'] and out['settings']['scene_nets_bf16']

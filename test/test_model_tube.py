@@ -413,6 +413,60 @@ def test_the_encoder_runs_in_bf16_only_where_training_asks(simulated, monkeypatc
         train(ds, TrainConfig(arch='ours', max_steps=2, encoder_bf16=True), progress=False)
 
 
+def test_the_scene_nets_run_in_bf16_only_where_training_asks(simulated, monkeypatch):
+    """scene_nets_bf16: ObjectNet's and BackgroundNet's convolutions in bf16, not their heads."""
+    from softshape_ros.model import tube_net
+    from softshape_ros.model.tube_net import ObjectNet, TubeNet, scene_nets_bf16
+    torch.manual_seed(0)
+    net = TubeNet(2, 1, depth_test=True).eval()
+    for head in (net.objects.head, net.background.head):      # zero at first: give them a say
+        torch.nn.init.normal_(head.weight, std=0.05)
+    dtypes = {}
+    for name, layer in (('obj conv', net.objects.inp[0]), ('obj head', net.objects.head),
+                        ('bg conv', net.background.down[0][0]), ('bg head', net.background.head)):
+        layer.register_forward_hook(lambda m, i, o, name=name: dtypes.__setitem__(name, o.dtype))
+    image, code, rest = torch.rand(4, 2, 64, 64), torch.randn(4, 64), net.keypoints.rest()
+
+    def both():
+        return (*net.objects(image, code), net.background(image, rest))
+
+    with torch.no_grad():
+        plain = both()
+        assert set(dtypes.values()) == {torch.float32}
+        with scene_nets_bf16():
+            low = both()
+        assert dtypes == {'obj conv': torch.bfloat16, 'obj head': torch.float32,
+                          'bg conv': torch.bfloat16, 'bg head': torch.float32}
+        again = both()
+    assert all(torch.equal(a, b) for a, b in zip(plain, again))   # the context leaves nothing
+    assert all(t.dtype == torch.float32 for t in low)              # what they feed: float32
+    for a, b in zip(plain, low):    # occupancy logits, depth (px), backgrounds
+        assert not torch.equal(a, b)                                # computed in bfloat16 ...
+        assert (b - a).abs().max() <= 0.02 * a.abs().max()         # ... to its precision
+    # In training, the full loss's steps run within the context, validation outside it.
+    seen, forward = [], ObjectNet.forward
+
+    def spy(self, image, code):
+        seen.append((torch.is_grad_enabled(), tube_net._BF16_NETS.get()))
+        return forward(self, image, code)
+
+    monkeypatch.setattr(ObjectNet, 'forward', spy)
+    ds = load_dataset(simulated.path)
+    cfg = TrainConfig(arch='tube', max_steps=4, eval_every=2, patience=100, seed=0, threads=1,
+                      split='scene', batch_size=16, scene_nets_bf16=True,
+                      arch_params={'depth_test': True})
+    res = train(ds, cfg, progress=False)
+    assert {bf for grad, bf in seen if grad} == {True}         # every step in bfloat16
+    assert {bf for grad, bf in seen if not grad} == {False}    # every validation not
+    assert all(p.dtype == torch.float32 for p in res.model.parameters())
+    assert res.config['training']['scene_nets_bf16'] is True
+    seen.clear()
+    train(ds, replace(cfg, scene_nets_bf16=False), progress=False)
+    assert {bf for _, bf in seen} == {False}
+    with pytest.raises(ValueError, match="scene_nets_bf16.*ObjectNet.*'ours' has none"):
+        train(ds, TrainConfig(arch='ours', max_steps=2, scene_nets_bf16=True), progress=False)
+
+
 def test_bf16_instructions_are_read_from_the_cpu_flags(tmp_path):
     """cpu_bf16_native: the bfloat16 instructions, not just AVX-512 (which torch's check reads)."""
     from softshape_ros.model.tube_net import cpu_bf16_native

@@ -59,6 +59,7 @@ class PretrainSettings:
     outline: bool = False           # tube: the learned outline (TubeNet(outline=True))
     depth_test: bool = False        # tube: the robot hidden by a depth test (TubeNet)
     encoder_bf16: bool = False      # tube: the scene encoder's convolutions in bfloat16
+    scene_nets_bf16: bool = False   # tube: ObjectNet's and BackgroundNet's too (full loss)
     # The simulated images' samples per pixel a side (0: the camera's own pixels; several:
     # a mix, each placement rendered with one).
     supersample: int | tuple = 3
@@ -126,13 +127,16 @@ def simulated_dataset(settings: PretrainSettings, work, progress: bool = True):
 
 def pretrain(settings: PretrainSettings, out, work, progress: bool = True) -> dict:
     """Simulate (or reuse) the data, train ``settings.arch``, write the checkpoint to ``out``."""
-    tube_only = [k for k in ('outline', 'depth_test', 'encoder_bf16') if getattr(settings, k)]
-    tube_params = {k: True for k in tube_only if k != 'encoder_bf16'}   # the network's
+    tube_only = [k for k in ('outline', 'depth_test', 'encoder_bf16', 'scene_nets_bf16')
+                 if getattr(settings, k)]
+    tube_params = {k: True for k in tube_only if not k.endswith('_bf16')}   # the network's
     if tube_only and settings.arch != 'tube':
         raise ValueError(f'{", ".join(tube_only)}: tube model options, not {settings.arch!r}')
-    if settings.encoder_bf16 and not cpu_bf16_native():
-        warnings.warn('encoder_bf16: this CPU has no native bfloat16 (AVX-512 BF16 or AMX); '
-                      'its convolutions may run slower than in float32. --no-encoder-bf16 '
+    low = [k for k in ('encoder_bf16', 'scene_nets_bf16') if getattr(settings, k)]
+    if low and not cpu_bf16_native():
+        flags = ' '.join(f'--no-{k.replace("_", "-")}' for k in low)
+        warnings.warn(f'{", ".join(low)}: this CPU has no native bfloat16 (AVX-512 BF16 or '
+                      f'AMX); its convolutions may run slower than in float32. {flags} '
                       'trains in float32 (not the shipped checkpoint\'s recipe)', stacklevel=2)
     cfg = TrainConfig(arch=settings.arch, seed=settings.seed, split='scene',
                       batch_size=settings.batch_size, lr=settings.lr,
@@ -140,7 +144,8 @@ def pretrain(settings: PretrainSettings, out, work, progress: bool = True) -> di
                       patience=settings.patience, threads=settings.threads,
                       val_fraction=settings.val_fraction,
                       scene_batch=settings.scene_batch, arch_params=tube_params,
-                      encoder_bf16=settings.encoder_bf16)
+                      encoder_bf16=settings.encoder_bf16,
+                      scene_nets_bf16=settings.scene_nets_bf16)
     ds = simulated_dataset(settings, work, progress)
     t0 = time.perf_counter()
     phases, res = train_in_phases(ds, cfg, settings.keypoint_steps,

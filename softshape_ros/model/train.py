@@ -32,7 +32,8 @@ from softshape_ros.model.data import (
 from softshape_ros.model.losses import ImageLoss, PixelLoss, TubeLoss
 from softshape_ros.model.metrics import RobotSilhouette
 from softshape_ros.model.networks import build_network
-from softshape_ros.model.tube_net import TubeNet, encoder_bf16, rest_template, scenes_shared
+from softshape_ros.model.tube_net import (
+    TubeNet, encoder_bf16, rest_template, scene_nets_bf16, scenes_shared)
 
 
 # Adam learning rates, each network's best on the simulated stereo sets of the design
@@ -84,6 +85,9 @@ class TrainConfig:
     # validation and the checkpoint's use stay float32): a reader step in about 0.6 of the
     # time on a CPU with AVX-512 BF16 (docs/model.md, "The encoder in bfloat16").
     encoder_bf16: bool = False
+    # tube, full loss: ObjectNet's and BackgroundNet's convolutions in bfloat16 too (but for
+    # their heads; docs/model.md, "The scene nets in bfloat16").
+    scene_nets_bf16: bool = False
     arch_params: dict = field(default_factory=dict)
 
     def __post_init__(self):
@@ -267,9 +271,11 @@ def _train(dataset, config, out, indices, progress, desc, rank, world,
     else:
         objective = PixelLoss(ImageLoss(loss_kind, ds.channels, sil.threshold / 255,
                                         config.silhouette_weight))
-    if config.encoder_bf16 and not isinstance(net, TubeNet):
-        raise ValueError(f'encoder_bf16 trains the tube model\'s scene encoder; '
-                         f'{config.arch!r} has none')
+    for flag, what in (('encoder_bf16', 'scene encoder'),
+                       ('scene_nets_bf16', 'ObjectNet and BackgroundNet')):
+        if getattr(config, flag) and not isinstance(net, TubeNet):
+            raise ValueError(f'{flag} trains the tube model\'s {what}; '
+                             f'{config.arch!r} has none')
     if config.freeze_scene and loss_kind != 'keypoints':
         raise ValueError(f'freeze_scene trains the tube keypoint heads on the keypoint loss, '
                          f'not {config.arch!r} on {loss_kind!r}')
@@ -502,7 +508,7 @@ def _fit(net, rows, objective, config, lr, rank, world, progress, desc, copy_mse
                            rows.train_scene if config.scene_batch else None):
             b = gb[rank * len(gb) // world:(rank + 1) * len(gb) // world]
             net.train()
-            with encoder_bf16(config.encoder_bf16):
+            with encoder_bf16(config.encoder_bf16), scene_nets_bf16(config.scene_nets_bf16):
                 loss, _ = objective(model, to_float(xt[b]), pt[b], to_float(tt[b]),
                                     *_take(rows.train_shape, b))
             opt.zero_grad(set_to_none=True)

@@ -96,6 +96,8 @@ def mlp(cin: int, hidden: int, cout: int, zero_last: bool = True) -> nn.Sequenti
 _SHARED = contextvars.ContextVar('scenes_shared', default=False)
 #: True within :func:`encoder_bf16`.
 _BF16 = contextvars.ContextVar('encoder_bf16', default=False)
+#: True within :func:`scene_nets_bf16`.
+_BF16_NETS = contextvars.ContextVar('scene_nets_bf16', default=False)
 
 
 @contextlib.contextmanager
@@ -129,6 +131,18 @@ def encoder_bf16(enabled: bool = True):
     validation, inference and export, outside the context.
     """
     return _set(_BF16, bool(enabled))
+
+
+def scene_nets_bf16(enabled: bool = True):
+    """
+    Within it (if ``enabled``), :class:`ObjectNet` and :class:`BackgroundNet` run in bfloat16.
+
+    For the full loss's training steps (``TrainConfig.scene_nets_bf16``): their convolutions
+    were a fifth of a step's time. Their heads, the layers that draw the occupancy, depth
+    and fill, stay float32, as does everything outside the context (docs/model.md, "The
+    scene nets in bfloat16").
+    """
+    return _set(_BF16_NETS, bool(enabled))
 
 
 def cpu_bf16_native(cpuinfo: str | Path = '/proc/cpuinfo') -> bool:
@@ -296,16 +310,17 @@ class ObjectNet(nn.Module):
     def forward(self, image: torch.Tensor, code: torch.Tensor):
         """B x VC x S x S rest images + B x code -> (occupancy logits, depth px), B x V x S x S."""
         b, _, h, w = image.shape
-        x = self.inp(torch.cat([image, coordinate_planes(b, h, w, image)], 1))  # B x w0 x S
-        skips = [x]
-        for stage in self.down:                                      # S/2, S/4, S/8
-            x = stage(x)
-            skips.append(x)
-        x = x + self.code(code)[:, :, None, None]
-        skips.pop()
-        for stage in self.up:                                        # S/4, S/2, S
-            x = torch.cat([stage(x), skips.pop()], 1)
-        occ, depth = self.head(x).split(self.views, 1)
+        with torch.autocast(image.device.type, dtype=torch.bfloat16, enabled=_BF16_NETS.get()):
+            x = self.inp(torch.cat([image, coordinate_planes(b, h, w, image)], 1))  # B x w0 x S
+            skips = [x]
+            for stage in self.down:                                  # S/2, S/4, S/8
+                x = stage(x)
+                skips.append(x)
+            x = x + self.code(code)[:, :, None, None]
+            skips.pop()
+            for stage in self.up:                                    # S/4, S/2, S
+                x = torch.cat([stage(x), skips.pop()], 1)
+        occ, depth = self.head(x.to(image.dtype)).split(self.views, 1)
         return occ, depth * self.DEPTH_SCALE
 
 
@@ -347,12 +362,14 @@ class BackgroundNet(nn.Module):
         mask = coverage(tube_field(widened[None], h).sd).view(1, v, h, w).expand(b, v, h, w)
         x = torch.cat([image, mask, coordinate_planes(b, h, w, image)], 1)
         skips = []
-        for stage in self.down:                                      # S/2, S/4, S/8
-            x = stage(x)
-            skips.append(x)
-        skips.pop()
-        for stage in self.up:                                        # S/4, S/2
-            x = torch.cat([stage(x), skips.pop()], 1)
+        with torch.autocast(image.device.type, dtype=torch.bfloat16, enabled=_BF16_NETS.get()):
+            for stage in self.down:                                  # S/2, S/4, S/8
+                x = stage(x)
+                skips.append(x)
+            skips.pop()
+            for stage in self.up:                                    # S/4, S/2
+                x = torch.cat([stage(x), skips.pop()], 1)
+        x = x.to(image.dtype)
         m = mask[:, :, None]                                         # B x V x 1 x S x S
         img = image.view(b, v, c, h, w)
         level = (img * (1 - m)).sum((3, 4)) / (1 - m).sum((3, 4)).clamp_min(1.0)  # B x V x C
