@@ -36,6 +36,15 @@ def _median_s(fn, n: int, warm: int = 2) -> float:
     return _latency(fn, n=n, warm=warm)['median_ms'] / 1000
 
 
+def _alternated(step, n: int, rounds: int = 3) -> tuple[float, float]:
+    """Return the median seconds of ``step(False)`` and ``step(True)``, taken in turns."""
+    times = {False: [], True: []}
+    for _ in range(rounds):
+        for flag in (False, True):
+            times[flag].append(_median_s(lambda: step(flag), n))
+    return float(np.median(times[False])), float(np.median(times[True]))
+
+
 def run(checkpoint=PRETRAINED) -> dict:
     restore = torch.get_num_threads()
     torch.set_num_threads(1)
@@ -72,41 +81,25 @@ def run(checkpoint=PRETRAINED) -> dict:
         out['full_loss_rows_per_s'] = round(BATCH / s, 1)
 
         # The reader phase's step (the scene term alone: the encoder), float32 and with its
-        # convolutions in bfloat16 (TrainConfig.encoder_bf16), alternated. Its batches of
-        # 64 rows hold about 64 placements, these 8: each row made its own by faint noise.
+        # convolutions in bfloat16 (TrainConfig.encoder_bf16); then the full-loss step with
+        # the encoder in bfloat16 (the recipe), and with ObjectNet and BackgroundNet too
+        # (TrainConfig.scene_nets_bf16). Each pair alternated. The recipe's batches of 64
+        # rows hold about 64 placements, these 8: each row made its own by faint noise.
         reader = TubeLoss(scene_only=True, channels=1)
         xr = x + 1e-3 * torch.rand(x.shape, generator=torch.Generator().manual_seed(0))
 
-        def reader_step(bf16):
+        def train_step(loss_fn, encoder, nets):
             net.train()
-            with encoder_bf16(bf16):
-                loss, _ = reader(net, xr, p, t, truth, free, scene, objects)
+            with encoder_bf16(encoder), scene_nets_bf16(nets):
+                loss, _ = loss_fn(net, xr, p, t, truth, free, scene, objects)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
-        times = {False: [], True: []}
-        for _ in range(3):
-            for bf16 in (False, True):
-                times[bf16].append(_median_s(lambda: reader_step(bf16), 4))
-        out['reader_step_s'] = round(float(np.median(times[False])), 4)
-        out['reader_step_bf16_s'] = round(float(np.median(times[True])), 4)
-
-        # The full-loss step on distinct rows (as the recipe's batches of 64 rows), with the
-        # encoder in bfloat16, and with ObjectNet and BackgroundNet too, alternated.
-
-        def full_step(nets):
-            net.train()
-            with encoder_bf16(True), scene_nets_bf16(nets):
-                loss, _ = objective(net, xr, p, t, truth, free, scene, objects)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-        times = {False: [], True: []}
-        for _ in range(3):
-            for nets in (False, True):
-                times[nets].append(_median_s(lambda: full_step(nets), 3))
-        out['full_loss_step_encoder_bf16_s'] = round(float(np.median(times[False])), 3)
-        out['full_loss_step_scene_nets_bf16_s'] = round(float(np.median(times[True])), 3)
+        reader_s = _alternated(lambda bf16: train_step(reader, bf16, False), 4)
+        out['reader_step_s'], out['reader_step_bf16_s'] = (round(v, 4) for v in reader_s)
+        full_s = _alternated(lambda nets: train_step(objective, True, nets), 3)
+        out['full_loss_step_encoder_bf16_s'], out['full_loss_step_scene_nets_bf16_s'] = (
+            round(v, 3) for v in full_s)
         out['cpu_bf16_supported'] = cpu_bf16_native()
         net.eval()
         initial = np.asarray(ds.initial[:BATCH])

@@ -374,6 +374,24 @@ def test_validation_encodes_each_placement_once(simulated, monkeypatch):
     assert seen[-1] == distinct
 
 
+def _bf16_in_training_steps_alone(ds, cfg, flag: str, seen: list) -> None:
+    """
+    Train ``cfg`` (``flag`` on), then with ``flag`` off, and check where bfloat16 ran.
+
+    ``seen``: (gradients on, the flag's context on) per call of the spied network part.
+    """
+    res = train(ds, cfg, progress=False)
+    assert {bf for grad, bf in seen if grad} == {True}         # every step in bfloat16
+    assert {bf for grad, bf in seen if not grad} == {False}    # every validation not
+    assert all(p.dtype == torch.float32 for p in res.model.parameters())
+    assert res.config['training'][flag] is True
+    seen.clear()
+    train(ds, replace(cfg, **{flag: False}), progress=False)
+    assert {bf for _, bf in seen} == {False}
+    with pytest.raises(ValueError, match=f"{flag}.*'ours' has none"):
+        train(ds, TrainConfig(arch='ours', max_steps=2, **{flag: True}), progress=False)
+
+
 def test_the_encoder_runs_in_bf16_only_where_training_asks(simulated, monkeypatch):
     """encoder_bf16: the training steps' convolutions in bfloat16; validation and use float32."""
     from softshape_ros.model import tube_net
@@ -401,16 +419,7 @@ def test_the_encoder_runs_in_bf16_only_where_training_asks(simulated, monkeypatc
     ds = load_dataset(simulated.path)
     cfg = TrainConfig(arch='tube', loss='scene', max_steps=4, eval_every=2, patience=100,
                       seed=0, threads=1, split='scene', batch_size=16, encoder_bf16=True)
-    res = train(ds, cfg, progress=False)
-    assert {bf for grad, bf in seen if grad} == {True}         # every step in bfloat16
-    assert {bf for grad, bf in seen if not grad} == {False}    # every validation not
-    assert all(p.dtype == torch.float32 for p in res.model.parameters())
-    assert res.config['training']['encoder_bf16'] is True
-    seen.clear()
-    train(ds, replace(cfg, encoder_bf16=False), progress=False)
-    assert {bf for _, bf in seen} == {False}
-    with pytest.raises(ValueError, match="encoder_bf16.*'ours' has none"):
-        train(ds, TrainConfig(arch='ours', max_steps=2, encoder_bf16=True), progress=False)
+    _bf16_in_training_steps_alone(ds, cfg, 'encoder_bf16', seen)
 
 
 def test_the_scene_nets_run_in_bf16_only_where_training_asks(simulated, monkeypatch):
@@ -455,16 +464,7 @@ def test_the_scene_nets_run_in_bf16_only_where_training_asks(simulated, monkeypa
     cfg = TrainConfig(arch='tube', max_steps=4, eval_every=2, patience=100, seed=0, threads=1,
                       split='scene', batch_size=16, scene_nets_bf16=True,
                       arch_params={'depth_test': True})
-    res = train(ds, cfg, progress=False)
-    assert {bf for grad, bf in seen if grad} == {True}         # every step in bfloat16
-    assert {bf for grad, bf in seen if not grad} == {False}    # every validation not
-    assert all(p.dtype == torch.float32 for p in res.model.parameters())
-    assert res.config['training']['scene_nets_bf16'] is True
-    seen.clear()
-    train(ds, replace(cfg, scene_nets_bf16=False), progress=False)
-    assert {bf for _, bf in seen} == {False}
-    with pytest.raises(ValueError, match="scene_nets_bf16.*ObjectNet.*'ours' has none"):
-        train(ds, TrainConfig(arch='ours', max_steps=2, scene_nets_bf16=True), progress=False)
+    _bf16_in_training_steps_alone(ds, cfg, 'scene_nets_bf16', seen)
 
 
 def test_bf16_instructions_are_read_from_the_cpu_flags(tmp_path):
