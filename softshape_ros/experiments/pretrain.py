@@ -127,12 +127,11 @@ def simulated_dataset(settings: PretrainSettings, work, progress: bool = True):
 
 def pretrain(settings: PretrainSettings, out, work, progress: bool = True) -> dict:
     """Simulate (or reuse) the data, train ``settings.arch``, write the checkpoint to ``out``."""
-    tube_only = [k for k in ('outline', 'depth_test', 'encoder_bf16', 'scene_nets_bf16')
-                 if getattr(settings, k)]
-    tube_params = {k: True for k in tube_only if not k.endswith('_bf16')}   # the network's
+    low = [k for k in ('encoder_bf16', 'scene_nets_bf16') if getattr(settings, k)]
+    tube_params = {k: True for k in ('outline', 'depth_test') if getattr(settings, k)}
+    tube_only = [*tube_params, *low]                        # the network's, then training's
     if tube_only and settings.arch != 'tube':
         raise ValueError(f'{", ".join(tube_only)}: tube model options, not {settings.arch!r}')
-    low = [k for k in ('encoder_bf16', 'scene_nets_bf16') if getattr(settings, k)]
     if low and not cpu_bf16_native():
         flags = ' '.join(f'--no-{k.replace("_", "-")}' for k in low)
         warnings.warn(f'{", ".join(low)}: this CPU has no native bfloat16 (AVX-512 BF16 or '
