@@ -17,7 +17,7 @@ from softshape_ros.model.data import SCENE_FEATURES, scene_targets, scene_vector
 from softshape_ros.model.metrics import RobotSilhouette
 from softshape_ros.model.train import TrainConfig, train
 from softshape_ros.model.tube_net import KEYPOINTS
-from softshape_ros.model.tube_render import TubeShader, coverage, tube_field
+from softshape_ros.model.tube_render import TubeShader, coverage, nearest_segment, tube_field
 from softshape_ros.scene import OBJECT_DIMS, Scene
 from softshape_ros.sim.generate import SHAPE_KEYPOINTS, generate, make_plan
 
@@ -134,6 +134,33 @@ def test_the_nearest_segment_render_equals_every_pair_with_gradients():
     for got, want in zip(*grads):
         torch.testing.assert_close(got, want, rtol=1e-9, atol=1e-9)
     assert (grads[0][2][..., :3].abs() > 0).all()                  # every point moved
+
+
+def test_the_nearest_segment_is_every_pairs_first_minimum_ties_included():
+    # One segment at a time with a running minimum: the same pick as the minimum over every
+    # pair at once, to the bit, and ties (a repeated keypoint: two segments alike) to the
+    # first segment, as ``min`` breaks them.
+    gen = torch.Generator().manual_seed(5)
+    kp = torch.rand(6, 2, KEYPOINTS, 4, generator=gen) * torch.tensor([48.0, 48.0, 3.0, 6.0])
+    kp[..., :2] += 8.0
+    kp[..., 2] += 1.0
+    kp[:3, :, 6] = kp[:3, :, 5]                                      # a zero-length segment
+    kp[3:, :, 7:9] = kp[3:, :, 5:7].flip(2)                          # a segment walked back
+    r = torch.arange(64.0)
+    qy, qx = (g.reshape(-1) for g in torch.meshgrid(r, r, indexing='ij'))
+    a, e = kp[:, :, :-1, None, :], kp[:, :, 1:, None, :] - kp[:, :, :-1, None, :]
+    exy2 = (e[..., 0] ** 2 + e[..., 1] ** 2).clamp_min(1e-6)
+    px, py = qx - a[..., 0], qy - a[..., 1]
+    t = (px * e[..., 0]).addcmul_(py, e[..., 1]).div_(exy2).clamp_(0.0, 1.0)
+    px.addcmul_(t, e[..., 0], value=-1.0)
+    py.addcmul_(t, e[..., 1], value=-1.0)
+    sd = px.mul_(px).addcmul_(py, py).add_(1e-6).sqrt_()
+    sd.sub_(a[..., 2]).addcmul_(t, e[..., 2], value=-1.0)
+    want = sd.min(dim=2).indices
+    got = nearest_segment(kp, qx, qy)
+    assert torch.equal(got, want)
+    tied = (sd == sd.min(dim=2, keepdim=True).values).sum(2) > 1
+    assert tied.sum() > 100                                          # ties were met
 
 
 @pytest.fixture(scope='module')
