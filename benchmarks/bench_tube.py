@@ -4,7 +4,8 @@ The tube model: its renderer, one full-loss training step and its predictions, o
 What the 20 000-sample pre-training and ``softshape evaluate`` spend their time on (issue
 18: train to early stopping in <= 30 min); the reader step also with the encoder in
 bfloat16 (``--encoder-bf16``), the full-loss step also with the encoder in bfloat16 as the
-recipe trains it, and with ObjectNet and BackgroundNet too (``--scene-nets-bf16``). Data:
+recipe trains it, with ObjectNet and BackgroundNet too (``--scene-nets-bf16``), and with
+the renderer compiled (``--compile-renderer``; its build, about 20 s, is not timed). Data:
 128 stereo samples of the default contact-rich plan over 8 placements, simulated here
 (shape record, contact record and placements, as training sees them, and the object depth
 maps where the network has the depth test); network: the shipped checkpoint
@@ -24,8 +25,8 @@ from softshape_ros.model import Predictor
 from softshape_ros.experiments.object_depths import object_depths
 from softshape_ros.model.data import scene_targets, shape_tensors, to_tensors
 from softshape_ros.model.losses import TubeLoss
-from softshape_ros.model.tube_net import cpu_bf16_native, encoder_bf16, scene_nets_bf16
-from softshape_ros.model.tube_render import tube_field
+from softshape_ros.model.tube_net import (
+    compiled_renderer, cpu_bf16_native, draw_field, encoder_bf16, scene_nets_bf16)
 from softshape_ros.sim.generate import generate, make_plan
 
 BATCH = 64
@@ -61,11 +62,13 @@ def run(checkpoint=PRETRAINED) -> dict:
         objects = object_depths(ds, rows)[rows] if net.depth_test else None
         out = {'batch': BATCH, 'threads': 1, 'depth_test': net.depth_test}
 
-        def render():
+        def render(compiled=False):
             kp = truth.clone().requires_grad_(True)
-            f = tube_field(kp, 64)
+            with compiled_renderer(compiled):
+                f = draw_field(kp, 64)
             (f.sd.sum() + f.nz.sum() + f.depth.sum()).backward()
-        out['render_fwd_bwd_ms'] = round(1000 * _median_s(render, 10), 1)
+        out['render_fwd_bwd_ms'], out['render_fwd_bwd_compiled_ms'] = (
+            round(1000 * v, 1) for v in _alternated(render, 10))
 
         objective = TubeLoss(threshold=pred.config['silhouette']['threshold'] / 255, channels=1)
         opt = torch.optim.Adam(net.parameters(), lr=1e-5)
@@ -83,14 +86,15 @@ def run(checkpoint=PRETRAINED) -> dict:
         # The reader phase's step (the scene term alone: the encoder), float32 and with its
         # convolutions in bfloat16 (TrainConfig.encoder_bf16); then the full-loss step with
         # the encoder in bfloat16 (the recipe), and with ObjectNet and BackgroundNet too
-        # (TrainConfig.scene_nets_bf16). Each pair alternated. The recipe's batches of 64
+        # (TrainConfig.scene_nets_bf16), and with the renderer compiled
+        # (TrainConfig.compile_renderer). Each pair alternated. The recipe's batches of 64
         # rows hold about 64 placements, these 8: each row made its own by faint noise.
         reader = TubeLoss(scene_only=True, channels=1)
         xr = x + 1e-3 * torch.rand(x.shape, generator=torch.Generator().manual_seed(0))
 
-        def train_step(loss_fn, encoder, nets):
+        def train_step(loss_fn, encoder, nets, compiled=False):
             net.train()
-            with encoder_bf16(encoder), scene_nets_bf16(nets):
+            with encoder_bf16(encoder), scene_nets_bf16(nets), compiled_renderer(compiled):
                 loss, _ = loss_fn(net, xr, p, t, truth, free, scene, objects)
             opt.zero_grad(set_to_none=True)
             loss.backward()
@@ -99,6 +103,9 @@ def run(checkpoint=PRETRAINED) -> dict:
         out['reader_step_s'], out['reader_step_bf16_s'] = (round(v, 4) for v in reader_s)
         full_s = _alternated(lambda nets: train_step(objective, True, nets), 3)
         out['full_loss_step_encoder_bf16_s'], out['full_loss_step_scene_nets_bf16_s'] = (
+            round(v, 3) for v in full_s)
+        full_s = _alternated(lambda compiled: train_step(objective, True, False, compiled), 3)
+        out['full_loss_step_recipe_s'], out['full_loss_step_compiled_renderer_s'] = (
             round(v, 3) for v in full_s)
         out['cpu_bf16_supported'] = cpu_bf16_native()
         net.eval()

@@ -143,10 +143,18 @@ def test_pretrain_tube_runs_its_two_phases_and_reuses_the_data(tmp_path, capsys,
     # CPU without bfloat16 instructions the recipe says it may be slower, and trains anyway.
     import softshape_ros.experiments.pretrain as pretrain_module
     monkeypatch.setattr(pretrain_module, 'cpu_bf16_native', lambda: False)
+    # --compile-renderer: checked before anything else, then every phase records it. (Here
+    # the check passes and the "compiled" field is the plain one: test_model_tube compiles.)
+    from softshape_ros.model import train as train_module, tube_net
+    checked = []
+    monkeypatch.setattr(train_module, 'check_renderer_compiles', lambda: checked.append(1))
+    monkeypatch.setattr(tube_net, '_compiled_field', lambda: tube_net.tube_field)
     with pytest.warns(UserWarning, match='no native bfloat16.*--no-encoder-bf16 '
                                          '--no-scene-nets-bf16 trains in float32'):
         assert cli(args + ['--reader-steps', '2', '--head-steps', '3', '--head-batch', '8',
-                           '--scene-batch', '2', '--encoder-bf16', '--scene-nets-bf16']) == 0
+                           '--scene-batch', '2', '--encoder-bf16', '--scene-nets-bf16',
+                           '--compile-renderer']) == 0
+    assert len(checked) == 2                # up front, and at the full phase (it draws)
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert (out['reader_steps'], out['keypoint_steps'], out['head_steps']) == (2, 3, 3)
     work = tmp_path / 'work'
@@ -167,3 +175,13 @@ def test_pretrain_tube_runs_its_two_phases_and_reuses_the_data(tmp_path, capsys,
     assert [c['encoder_bf16'] for c in chain] == [True] * 3
     assert cfg['training']['encoder_bf16'] and out['settings']['encoder_bf16']
     assert cfg['training']['scene_nets_bf16'] and out['settings']['scene_nets_bf16']
+    assert cfg['training']['compile_renderer'] and out['settings']['compile_renderer']
+    # A machine where it cannot compile: refused before simulating, the way out named.
+
+    def cannot():
+        raise RuntimeError('torch.compile could not build the renderer here (...)')
+    monkeypatch.setattr(train_module, 'check_renderer_compiles', cannot)
+    assert cli(args + ['--compile-renderer', '--work', str(tmp_path / 'work2')]) != 0
+    assert ('compile_renderer: torch.compile could not build the renderer here (...). The same '
+            'training without it: --no-compile-renderer') in capsys.readouterr().err
+    assert not (tmp_path / 'work2').exists()

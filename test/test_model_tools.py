@@ -80,6 +80,10 @@ def test_cli_train_evaluate_export(tmp_path, capsys):
                 'ours', '--scene-nets-bf16', '--max-steps', '1']) == 2
     assert ("scene_nets_bf16 trains the tube model's ObjectNet and BackgroundNet; 'ours' has "
             "none") in capsys.readouterr().err
+    assert cli(['train', '--dataset', str(ds.path), '--out', str(tmp_path / 'no'), '--arch',
+                'ours', '--compile-renderer', '--max-steps', '1']) == 2
+    assert "compile_renderer trains the tube model's renderer; 'ours' has none" in \
+        capsys.readouterr().err
     assert not (tmp_path / 'no').exists()
     assert cli(['evaluate', '--checkpoint', str(ck), '--dataset', str(ds.path),
                 '--validation', '--out', str(tmp_path / 'ev')]) == 0

@@ -401,15 +401,15 @@ def test_validation_encodes_each_placement_once(simulated, monkeypatch):
     assert seen[-1] == distinct
 
 
-def _bf16_in_training_steps_alone(ds, cfg, flag: str, seen: list) -> None:
+def _in_training_steps_alone(ds, cfg, flag: str, seen: list) -> None:
     """
-    Train ``cfg`` (``flag`` on), then with ``flag`` off, and check where bfloat16 ran.
+    Train ``cfg`` (``flag`` on), then with ``flag`` off, and check where its context was on.
 
     ``seen``: (gradients on, the flag's context on) per call of the spied network part.
     """
     res = train(ds, cfg, progress=False)
-    assert {bf for grad, bf in seen if grad} == {True}         # every step in bfloat16
-    assert {bf for grad, bf in seen if not grad} == {False}    # every validation not
+    assert {on for grad, on in seen if grad} == {True}         # every step within it
+    assert {on for grad, on in seen if not grad} == {False}    # every validation not
     assert all(p.dtype == torch.float32 for p in res.model.parameters())
     assert res.config['training'][flag] is True
     seen.clear()
@@ -446,7 +446,7 @@ def test_the_encoder_runs_in_bf16_only_where_training_asks(simulated, monkeypatc
     ds = load_dataset(simulated.path)
     cfg = TrainConfig(arch='tube', loss='scene', max_steps=4, eval_every=2, patience=100,
                       seed=0, threads=1, split='scene', batch_size=16, encoder_bf16=True)
-    _bf16_in_training_steps_alone(ds, cfg, 'encoder_bf16', seen)
+    _in_training_steps_alone(ds, cfg, 'encoder_bf16', seen)
 
 
 def test_the_scene_nets_run_in_bf16_only_where_training_asks(simulated, monkeypatch):
@@ -491,7 +491,84 @@ def test_the_scene_nets_run_in_bf16_only_where_training_asks(simulated, monkeypa
     cfg = TrainConfig(arch='tube', max_steps=4, eval_every=2, patience=100, seed=0, threads=1,
                       split='scene', batch_size=16, scene_nets_bf16=True,
                       arch_params={'depth_test': True})
-    _bf16_in_training_steps_alone(ds, cfg, 'scene_nets_bf16', seen)
+    _in_training_steps_alone(ds, cfg, 'scene_nets_bf16', seen)
+
+
+def test_the_compiled_renderer_draws_the_same_field_in_steps_alone(simulated, monkeypatch):
+    """compile_renderer: torch.compile's renderer field in training steps, the same field."""
+    from softshape_ros.model import tube_net
+    from softshape_ros.model.tube_net import compiled_renderer, draw_field
+    gen = torch.Generator().manual_seed(7)
+    kp = torch.rand(3, 2, KEYPOINTS, 4, generator=gen) * torch.tensor([40.0, 40.0, 3.0, 6.0])
+    kp += torch.tensor([12.0, 12.0, 2.0, 0.0])
+    weights = torch.randn(6, 3, 2, 64 * 64, generator=gen)
+    built, compiled_field = [], tube_net._compiled_field
+
+    def spy():
+        built.append(True)
+        return compiled_field()
+
+    monkeypatch.setattr(tube_net, '_compiled_field', spy)
+
+    def drawn(compiled: bool):
+        leaf = kp.clone().requires_grad_(True)
+        with compiled_renderer(compiled):
+            field = draw_field(leaf, 64)
+        sum((w * f).sum() for w, f in zip(weights, field)).backward()
+        return [f.detach() for f in field] + [leaf.grad]
+
+    plain = drawn(False)
+    assert not built
+    fused = drawn(True)
+    assert built                                                # the compiled path drew it
+    for a, b in zip(plain, fused):                              # six maps, the gradient
+        torch.testing.assert_close(b, a, rtol=1e-4, atol=1e-4)
+    with torch.no_grad(), compiled_renderer():                  # no gradients: plain
+        built.clear()
+        draw_field(kp, 64)
+    assert not built
+    # In training, the full loss's steps draw within the context, validation outside it.
+    seen, draw = [], tube_net.draw_field
+
+    def spy_draw(keypoints, size):
+        seen.append((torch.is_grad_enabled(), tube_net._COMPILED.get()))
+        return draw(keypoints, size)
+
+    monkeypatch.setattr(tube_net, 'draw_field', spy_draw)
+    ds = load_dataset(simulated.path)
+    cfg = TrainConfig(arch='tube', max_steps=4, eval_every=2, patience=100, seed=0, threads=1,
+                      split='scene', batch_size=16, compile_renderer=True,
+                      arch_params={'depth_test': True})
+    _in_training_steps_alone(ds, cfg, 'compile_renderer', seen)
+
+
+def test_a_renderer_that_cannot_compile_is_refused_before_training(simulated, monkeypatch,
+                                                                   tmp_path):
+    """Without a working C++ compiler: a clear error up front, naming the way out."""
+    from softshape_ros.model import tube_net
+
+    def no_compiler(fn, **kw):
+        def fail(*a, **k):
+            raise RuntimeError('InvalidCxxCompiler: No working C++ compiler found\nmore')
+        return fail
+
+    monkeypatch.setattr(torch, 'compile', no_compiler)
+    tube_net.check_renderer_compiles.cache_clear()
+    try:
+        ds = load_dataset(simulated.path)
+        cfg = TrainConfig(arch='tube', max_steps=2, seed=0, threads=1, split='scene',
+                          batch_size=16, compile_renderer=True)
+        with pytest.raises(ValueError, match=r'compile_renderer: torch.compile could not build '
+                           r'the renderer here \(RuntimeError: InvalidCxxCompiler: No working '
+                           r'C\+\+ compiler found\); it needs a working C\+\+ compiler\. '
+                           r'.*--no-compile-renderer'):
+            train(ds, cfg, out=tmp_path / 'ck', progress=False)
+        assert not (tmp_path / 'ck').exists()
+        # The keypoint phases draw nothing: the flag is no concern of theirs.
+        res = train(ds, replace(cfg, loss='keypoints'), progress=False)
+        assert res.steps == 2
+    finally:
+        tube_net.check_renderer_compiles.cache_clear()
 
 
 def test_bf16_instructions_are_read_from_the_cpu_flags(tmp_path):

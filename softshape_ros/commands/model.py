@@ -23,6 +23,9 @@ ENCODER_BF16_HELP = ("tube: train the scene encoder's convolutions in bfloat16 (
 SCENE_NETS_BF16_HELP = ("tube, the full loss: ObjectNet's and BackgroundNet's convolutions in "
                         'bfloat16 too, but for their heads (a full step in about 0.77 of the '
                         'time; docs/model.md, "The scene nets in bfloat16")')
+COMPILE_RENDERER_HELP = ('tube, the full loss: compile the renderer with torch.compile (needs a '
+                         'C++ compiler; about 20 s to build; docs/model.md, "A compiled '
+                         'renderer")')
 
 
 def tube_options(args, command: str) -> dict:
@@ -50,7 +53,7 @@ def _train(args) -> int:
                       freeze_scene=args.freeze_scene, warmup=args.warmup,
                       val_fraction=args.val_fraction,
                       encoder_bf16=args.encoder_bf16, scene_nets_bf16=args.scene_nets_bf16,
-                      arch_params=arch_params)
+                      compile_renderer=args.compile_renderer, arch_params=arch_params)
     res = train(ds, cfg, out=args.out, indices=rows, progress=not args.quiet,
                 object_depths=object_depths)
     summary = {'checkpoint': args.out, 'steps': res.steps,
@@ -114,7 +117,7 @@ def _pretrain(args) -> int:
         'patience', 'threads', 'workers', 'keypoint_steps', 'keypoint_scene_batch',
         'reader_steps', 'head_steps', 'head_batch', 'val_fraction',
         'toward_share', 'sparse_share', 'far_share', 'outline', 'depth_test',
-        'encoder_bf16', 'scene_nets_bf16', 'supersample')})
+        'encoder_bf16', 'scene_nets_bf16', 'compile_renderer', 'supersample')})
     out = args.out or f'models/{args.arch}_stereo_gray'
     print(json.dumps(pretrain(s, out, args.work, progress=not args.quiet)))
     return 0
@@ -154,6 +157,7 @@ def register(sub) -> None:
     p.add_argument('--depth-test', action='store_true', help=DEPTH_TEST_HELP)
     p.add_argument('--encoder-bf16', action='store_true', help=ENCODER_BF16_HELP)
     p.add_argument('--scene-nets-bf16', action='store_true', help=SCENE_NETS_BF16_HELP)
+    p.add_argument('--compile-renderer', action='store_true', help=COMPILE_RENDERER_HELP)
     p.add_argument('--warmup', type=float, default=0.0,
                    help='share of --max-steps over which the rate rises to --lr before '
                         'its cosine (0: none)')
@@ -239,6 +243,8 @@ def register(sub) -> None:
                    '--no-encoder-bf16: float32')
     p.add_argument('--scene-nets-bf16', action=argparse.BooleanOptionalAction, default=None,
                    help=SCENE_NETS_BF16_HELP + '; --no-scene-nets-bf16: float32')
+    p.add_argument('--compile-renderer', action=argparse.BooleanOptionalAction, default=None,
+                   help=COMPILE_RENDERER_HELP + '; --no-compile-renderer: eager PyTorch')
     p.add_argument('--quiet', action='store_true', help='no progress bars')
     p.set_defaults(func=_pretrain)
 

@@ -21,7 +21,7 @@ from pathlib import Path
 
 from softshape_ros.config import load_rig_config
 from softshape_ros.experiments.object_depths import object_depths
-from softshape_ros.model.train import HEAD_BATCH, TrainConfig, train_in_phases
+from softshape_ros.model.train import HEAD_BATCH, TrainConfig, renderer_compiles, train_in_phases
 from softshape_ros.model.tube_net import cpu_bf16_native
 from softshape_ros.sim.generate import SPARSE_SHARE, TOWARD_SHARE
 
@@ -60,6 +60,7 @@ class PretrainSettings:
     depth_test: bool = False        # tube: the robot hidden by a depth test (TubeNet)
     encoder_bf16: bool = False      # tube: the scene encoder's convolutions in bfloat16
     scene_nets_bf16: bool = False   # tube: ObjectNet's and BackgroundNet's too (full loss)
+    compile_renderer: bool = False  # tube: the renderer compiled (full loss; torch.compile)
     # The simulated images' samples per pixel a side (0: the camera's own pixels; several:
     # a mix, each placement rendered with one).
     supersample: int | tuple = 3
@@ -129,9 +130,12 @@ def pretrain(settings: PretrainSettings, out, work, progress: bool = True) -> di
     """Simulate (or reuse) the data, train ``settings.arch``, write the checkpoint to ``out``."""
     low = [k for k in ('encoder_bf16', 'scene_nets_bf16') if getattr(settings, k)]
     tube_params = {k: True for k in ('outline', 'depth_test') if getattr(settings, k)}
-    tube_only = [*tube_params, *low]                        # the network's, then training's
+    compiled = ['compile_renderer'] if settings.compile_renderer else []
+    tube_only = [*tube_params, *low, *compiled]             # the network's, then training's
     if tube_only and settings.arch != 'tube':
         raise ValueError(f'{", ".join(tube_only)}: tube model options, not {settings.arch!r}')
+    if compiled:
+        renderer_compiles()         # before the data and the phases, not at the full one
     if low and not cpu_bf16_native():
         flags = ' '.join(f'--no-{k.replace("_", "-")}' for k in low)
         warnings.warn(f'{", ".join(low)}: this CPU has no native bfloat16 (AVX-512 BF16 or '
@@ -144,7 +148,8 @@ def pretrain(settings: PretrainSettings, out, work, progress: bool = True) -> di
                       val_fraction=settings.val_fraction,
                       scene_batch=settings.scene_batch, arch_params=tube_params,
                       encoder_bf16=settings.encoder_bf16,
-                      scene_nets_bf16=settings.scene_nets_bf16)
+                      scene_nets_bf16=settings.scene_nets_bf16,
+                      compile_renderer=settings.compile_renderer)
     ds = simulated_dataset(settings, work, progress)
     t0 = time.perf_counter()
     phases, res = train_in_phases(ds, cfg, settings.keypoint_steps,

@@ -33,7 +33,8 @@ from softshape_ros.model.losses import ImageLoss, PixelLoss, TubeLoss
 from softshape_ros.model.metrics import RobotSilhouette
 from softshape_ros.model.networks import build_network
 from softshape_ros.model.tube_net import (
-    TubeNet, encoder_bf16, rest_template, scene_nets_bf16, scenes_shared)
+    TubeNet, check_renderer_compiles, compiled_renderer, encoder_bf16, rest_template,
+    scene_nets_bf16, scenes_shared)
 
 
 # Adam learning rates, each network's best on the simulated stereo sets of the design
@@ -88,6 +89,10 @@ class TrainConfig:
     # tube, full loss: ObjectNet's and BackgroundNet's convolutions in bfloat16 too (but for
     # their heads; docs/model.md, "The scene nets in bfloat16").
     scene_nets_bf16: bool = False
+    # tube, full loss: the renderer's field compiled (torch.compile; needs a C++ compiler)
+    # in training steps, fused where it made some thirty passes through memory
+    # (docs/model.md, "A compiled renderer").
+    compile_renderer: bool = False
     arch_params: dict = field(default_factory=dict)
 
     def __post_init__(self):
@@ -174,6 +179,16 @@ def _all_sum(world: int, *vals) -> list:
     if world > 1:
         dist.all_reduce(t)
     return t.tolist()
+
+
+def renderer_compiles() -> None:
+    """Raise ValueError, naming the way out, where ``compile_renderer`` cannot work."""
+    try:
+        check_renderer_compiles()
+    except RuntimeError as e:
+        raise ValueError(f'compile_renderer: {e}. The same training without it: '
+                         '--no-compile-renderer (softshape pretrain), or leave out '
+                         '--compile-renderer (softshape train)') from e
 
 
 def train(dataset, config: TrainConfig, out=None, indices=None, progress: bool = True,
@@ -272,10 +287,13 @@ def _train(dataset, config, out, indices, progress, desc, rank, world,
         objective = PixelLoss(ImageLoss(loss_kind, ds.channels, sil.threshold / 255,
                                         config.silhouette_weight))
     for flag, what in (('encoder_bf16', 'scene encoder'),
-                       ('scene_nets_bf16', 'ObjectNet and BackgroundNet')):
+                       ('scene_nets_bf16', 'ObjectNet and BackgroundNet'),
+                       ('compile_renderer', 'renderer')):
         if getattr(config, flag) and not isinstance(net, TubeNet):
             raise ValueError(f'{flag} trains the tube model\'s {what}; '
                              f'{config.arch!r} has none')
+    if config.compile_renderer and _draws(objective):
+        renderer_compiles()
     if config.freeze_scene and loss_kind != 'keypoints':
         raise ValueError(f'freeze_scene trains the tube keypoint heads on the keypoint loss, '
                          f'not {config.arch!r} on {loss_kind!r}')
@@ -508,7 +526,8 @@ def _fit(net, rows, objective, config, lr, rank, world, progress, desc, copy_mse
                            rows.train_scene if config.scene_batch else None):
             b = gb[rank * len(gb) // world:(rank + 1) * len(gb) // world]
             net.train()
-            with encoder_bf16(config.encoder_bf16), scene_nets_bf16(config.scene_nets_bf16):
+            with (encoder_bf16(config.encoder_bf16), scene_nets_bf16(config.scene_nets_bf16),
+                  compiled_renderer(config.compile_renderer)):
                 loss, _ = objective(model, to_float(xt[b]), pt[b], to_float(tt[b]),
                                     *_take(rows.train_shape, b))
             opt.zero_grad(set_to_none=True)

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
+import functools
 from pathlib import Path
 from typing import NamedTuple
 
@@ -98,6 +99,8 @@ _SHARED = contextvars.ContextVar('scenes_shared', default=False)
 _BF16 = contextvars.ContextVar('encoder_bf16', default=False)
 #: True within :func:`scene_nets_bf16`.
 _BF16_NETS = contextvars.ContextVar('scene_nets_bf16', default=False)
+#: True within :func:`compiled_renderer`.
+_COMPILED = contextvars.ContextVar('compiled_renderer', default=False)
 
 
 @contextlib.contextmanager
@@ -143,6 +146,50 @@ def scene_nets_bf16(enabled: bool = True):
     scene nets in bfloat16").
     """
     return _set(_BF16_NETS, bool(enabled))
+
+
+def compiled_renderer(enabled: bool = True):
+    """
+    Within it (if ``enabled``), steps with gradients draw the tube with a compiled renderer.
+
+    For the full loss's training steps (``TrainConfig.compile_renderer``): the renderer's
+    per-pixel field is some thirty elementwise passes over B x V x S x S tensors, twice a
+    step (the prediction and the teacher), each through memory; ``torch.compile`` fuses
+    them. The same formula, float rounding aside. Validation, inference and export stay on
+    the plain path (docs/model.md, "A compiled renderer").
+    """
+    return _set(_COMPILED, bool(enabled))
+
+
+@functools.cache
+def _compiled_field():
+    return torch.compile(tube_field)
+
+
+def draw_field(keypoints: torch.Tensor, size: int) -> TubeField:
+    """Return :func:`~softshape_ros.model.tube_render.tube_field`, compiled where asked."""
+    if _COMPILED.get() and torch.is_grad_enabled() and not torch.compiler.is_compiling():
+        return _compiled_field()(keypoints, size)
+    return tube_field(keypoints, size)
+
+
+@functools.cache
+def check_renderer_compiles() -> None:
+    """
+    Compile a small renderer and run it forward and backward; raise RuntimeError if it fails.
+
+    ``torch.compile`` builds C++ kernels: on a machine without a working compiler the
+    first training step would fail, after whatever came before it. Checked up front
+    instead, once per process, in a frame of its own (so its shapes do not make the
+    training's compile a dynamic one).
+    """
+    kp = torch.tensor([[[[4.0, 2.0, 1.5, 0.0], [4.0, 6.0, 1.0, 1.0]]]], requires_grad=True)
+    try:
+        torch.compile(lambda k: tube_field(k, 8).sd.sum())(kp).backward()
+    except Exception as e:      # the backends raise many kinds; each means the same here
+        cause = (str(e).strip().splitlines() or [''])[0][:300]
+        raise RuntimeError(f'torch.compile could not build the renderer here ({type(e).__name__}'
+                           f': {cause}); it needs a working C++ compiler') from e
 
 
 def cpu_bf16_native(cpuinfo: str | Path = '/proc/cpuinfo') -> bool:
@@ -531,7 +578,7 @@ class TubeNet(nn.Module):
         else the VisibilityNet's logits decide.
         """
         b, v, c, s = image.shape[0], self.views, self.channels, self.size
-        field: TubeField = tube_field(keypoints, s)
+        field: TubeField = draw_field(keypoints, s)
         cov = self.shader.coverage(field).view(b, v, s, s)
         if self.depth_test:
             occ, obj_depth = objects.reshape(b, 2, v, s * s).unbind(1)       # B x V x P

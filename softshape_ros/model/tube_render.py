@@ -56,6 +56,14 @@ def nearest_segment(keypoints: torch.Tensor, qx: torch.Tensor, qy: torch.Tensor)
         a = kp[:, :, :-1, None, :]                                   # B x V x S x 1 x 4
         e = kp[:, :, 1:, None, :] - a                                # S = K - 1 segments
         exy2 = (e[..., X] ** 2 + e[..., Y] ** 2).clamp_min(1e-6)     # B x V x S x 1
+        if torch.compiler.is_compiling():
+            # Compiled (training's compiled renderer, ONNX export): every pair at once, one
+            # fused reduction that keeps no pair in memory (a loop would be unrolled).
+            px, py = qx - a[..., X], qy - a[..., Y]                  # B x V x S x P
+            t = ((px * e[..., X] + py * e[..., Y]) / exy2).clamp(0.0, 1.0)
+            dx, dy = px - t * e[..., X], py - t * e[..., Y]
+            sd = (dx * dx + dy * dy + 1e-6).sqrt() - a[..., R] - t * e[..., R]
+            return sd.min(dim=2).indices
         best = nearest = None
         for j in range(a.shape[2]):
             aj, ej = a[:, :, j], e[:, :, j]                          # B x V x 1 x 4
