@@ -66,7 +66,7 @@ test: build
 bench: build
 	$(VPY) -m benchmarks $(ARGS)
 
-# Pre-trained checkpoints (docs/model.md), as shipped: ARGS="--arch tube" models/tube_stereo_gray
+# Pre-trained checkpoints (docs/model.md), as shipped: ARGS="--arch tube --no-compile-renderer" models/tube_stereo_gray
 # (the demo's), ARGS="--sparse-share 0" models/ours_stereo_gray (its data predates the sparse share).
 pretrain: build
 	$(VENV)/bin/softshape pretrain $(ARGS)

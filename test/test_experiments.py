@@ -87,12 +87,14 @@ def test_pretrain_tube_runs_its_two_phases_and_reuses_the_data(tmp_path, capsys,
     args = ['pretrain', '--arch', 'tube', '--out', str(tmp_path / 'ck'), '--work',
             str(tmp_path / 'work'), '--samples', '40', '--scenes', '4', '--keypoint-steps', '3',
             '--max-steps', '2', '--batch-size', '8', '--eval-every', '1', '--threads', '1',
-            '--workers', '1', '--quiet', '--reader-steps', '0', '--head-steps', '0']
+            '--workers', '1', '--quiet', '--reader-steps', '0', '--head-steps', '0',
+            '--no-compile-renderer']
     # The shipped recipe's phases: reader, keypoints, heads, full (docs/model.md).
     recipe = PretrainSettings.for_arch('tube')
     assert (recipe.reader_steps, recipe.keypoint_steps, recipe.head_steps, recipe.max_steps,
             recipe.depth_test, recipe.encoder_bf16) == (6000, 10000, 20000, 2400, True, True)
     assert recipe.scene_nets_bf16 is False       # measured, not the default ("The scene nets")
+    assert recipe.compile_renderer is True      # "A compiled renderer" (off in these runs)
     assert recipe.val_fraction == 0.05          # the full phase's held-out placements
     assert cli(args + ['--val-fraction', '0']) != 0          # refused before simulating
     assert 'val_fraction 0.0: the held-out share' in capsys.readouterr().err
@@ -109,6 +111,7 @@ def test_pretrain_tube_runs_its_two_phases_and_reuses_the_data(tmp_path, capsys,
     assert model.depth_test and model.visibility is None
     assert cfg['training']['encoder_bf16'] is True          # the recipe's default
     assert cfg['training']['scene_nets_bf16'] is False
+    assert cfg['training']['compile_renderer'] is False       # --no-compile-renderer
     _, first = load_checkpoint(tmp_path / 'work' / 'tube_keypoints')
     assert first['training']['loss'] == 'keypoints' and first['training']['steps'] == 3
     # The full phase holds out fewer placements than the phases before it.
@@ -176,6 +179,7 @@ def test_pretrain_tube_runs_its_two_phases_and_reuses_the_data(tmp_path, capsys,
     assert cfg['training']['encoder_bf16'] and out['settings']['encoder_bf16']
     assert cfg['training']['scene_nets_bf16'] and out['settings']['scene_nets_bf16']
     assert cfg['training']['compile_renderer'] and out['settings']['compile_renderer']
+    assert [c['compile_renderer'] for c in chain] == [True] * 3
     # A machine where it cannot compile: refused before simulating, the way out named.
 
     def cannot():

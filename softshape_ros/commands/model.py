@@ -244,7 +244,8 @@ def register(sub) -> None:
     p.add_argument('--scene-nets-bf16', action=argparse.BooleanOptionalAction, default=None,
                    help=SCENE_NETS_BF16_HELP + '; --no-scene-nets-bf16: float32')
     p.add_argument('--compile-renderer', action=argparse.BooleanOptionalAction, default=None,
-                   help=COMPILE_RENDERER_HELP + '; --no-compile-renderer: eager PyTorch')
+                   help=COMPILE_RENDERER_HELP + '; default on for tube, '
+                   '--no-compile-renderer: eager PyTorch (how the shipped checkpoint was made)')
     p.add_argument('--quiet', action='store_true', help='no progress bars')
     p.set_defaults(func=_pretrain)
 

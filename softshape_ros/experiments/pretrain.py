@@ -88,10 +88,12 @@ class PretrainSettings:
 #: seeds, for about 13 min more (docs/model.md, "A longer full phase"). The full phase holds
 #: out 5 % of the placements, not 20 %: on 9500 placements instead of 8000, RMSE, IoU, the
 #: touching tip and intrusion were better on two seeds, at no cost (docs/model.md, "The full
-#: phase on more placements").
+#: phase on more placements"). The full phase draws with a compiled renderer: the same
+#: formula in about 0.82 of the time (docs/model.md, "A compiled renderer").
 TUBE = {'samples': 20000, 'scenes': 10000, 'reader_steps': 6000, 'keypoint_steps': 10000,
         'keypoint_scene_batch': 16, 'head_steps': 20000, 'max_steps': 2400, 'eval_every': 400,
-        'patience': 100, 'depth_test': True, 'encoder_bf16': True, 'val_fraction': 0.05}
+        'patience': 100, 'depth_test': True, 'encoder_bf16': True, 'val_fraction': 0.05,
+        'compile_renderer': True}
 #: The held-out share of the tube recipe's phases before the full one (as they were measured).
 PHASE_VAL_FRACTION = 0.2
 
