@@ -137,15 +137,16 @@ def test_the_nearest_segment_render_equals_every_pair_with_gradients():
 
 
 def test_the_nearest_segment_is_every_pairs_first_minimum_ties_included():
-    # One segment at a time with a running minimum: the same pick as the minimum over every
-    # pair at once, to the bit, and ties (a repeated keypoint: two segments alike) to the
-    # first segment, as ``min`` breaks them.
+    # One segment at a time with a running minimum (from LOOP_ROWS rows on), or one pass
+    # (fewer): the same pick as the minimum over every pair at once, to the bit, and ties
+    # (a repeated keypoint: two segments alike) to the first segment, as ``min`` breaks them.
+    from softshape_ros.model.tube_render import LOOP_ROWS
     gen = torch.Generator().manual_seed(5)
-    kp = torch.rand(6, 2, KEYPOINTS, 4, generator=gen) * torch.tensor([48.0, 48.0, 3.0, 6.0])
+    kp = torch.rand(12, 2, KEYPOINTS, 4, generator=gen) * torch.tensor([48.0, 48.0, 3.0, 6.0])
     kp[..., :2] += 8.0
     kp[..., 2] += 1.0
-    kp[:3, :, 6] = kp[:3, :, 5]                                      # a zero-length segment
-    kp[3:, :, 7:9] = kp[3:, :, 5:7].flip(2)                          # a segment walked back
+    kp[0:12:2, :, 6] = kp[0:12:2, :, 5]                             # a zero-length segment
+    kp[1:12:2, :, 7:9] = kp[1:12:2, :, 5:7].flip(2)                 # a segment walked back
     r = torch.arange(64.0)
     qy, qx = (g.reshape(-1) for g in torch.meshgrid(r, r, indexing='ij'))
     a, e = kp[:, :, :-1, None, :], kp[:, :, 1:, None, :] - kp[:, :, :-1, None, :]
@@ -157,10 +158,11 @@ def test_the_nearest_segment_is_every_pairs_first_minimum_ties_included():
     sd = px.mul_(px).addcmul_(py, py).add_(1e-6).sqrt_()
     sd.sub_(a[..., 2]).addcmul_(t, e[..., 2], value=-1.0)
     want = sd.min(dim=2).indices
-    got = nearest_segment(kp, qx, qy)
-    assert torch.equal(got, want)
     tied = (sd == sd.min(dim=2, keepdim=True).values).sum(2) > 1
-    assert tied.sum() > 100                                          # ties were met
+    for n in (12, 4):                                   # 24 rows: the loop; 8: one pass
+        assert (n * 2 >= LOOP_ROWS) == (n == 12)
+        assert torch.equal(nearest_segment(kp[:n], qx, qy), want[:n])
+        assert tied[:n].sum() > 100                                  # ties were met
 
 
 @pytest.fixture(scope='module')
@@ -401,12 +403,24 @@ def test_validation_encodes_each_placement_once(simulated, monkeypatch):
     assert seen[-1] == distinct
 
 
-def _in_training_steps_alone(ds, cfg, flag: str, seen: list) -> None:
+def _in_training_steps_alone(simulated, monkeypatch, owner, name: str, context, flag: str,
+                             **config) -> None:
     """
-    Train ``cfg`` (``flag`` on), then with ``flag`` off, and check where its context was on.
+    Spy on ``owner.name``, train with ``flag`` on, then off: ``context`` on in steps alone.
 
-    ``seen``: (gradients on, the flag's context on) per call of the spied network part.
+    Every call with gradients (a training step) runs within the flag's context, every call
+    without (validation) outside it; the weights stay float32; ``ours`` refuses the flag.
     """
+    seen, inner = [], getattr(owner, name)
+
+    def spy(*args, **kw):
+        seen.append((torch.is_grad_enabled(), context.get()))
+        return inner(*args, **kw)
+
+    monkeypatch.setattr(owner, name, spy)
+    ds = load_dataset(simulated.path)
+    cfg = TrainConfig(arch='tube', max_steps=4, eval_every=2, patience=100, seed=0, threads=1,
+                      split='scene', batch_size=16, **{flag: True}, **config)
     res = train(ds, cfg, progress=False)
     assert {on for grad, on in seen if grad} == {True}         # every step within it
     assert {on for grad, on in seen if not grad} == {False}    # every validation not
@@ -414,7 +428,7 @@ def _in_training_steps_alone(ds, cfg, flag: str, seen: list) -> None:
     assert res.config['training'][flag] is True
     seen.clear()
     train(ds, replace(cfg, **{flag: False}), progress=False)
-    assert {bf for _, bf in seen} == {False}
+    assert {on for _, on in seen} == {False}
     with pytest.raises(ValueError, match=f"{flag}.*'ours' has none"):
         train(ds, TrainConfig(arch='ours', max_steps=2, **{flag: True}), progress=False)
 
@@ -436,17 +450,8 @@ def test_the_encoder_runs_in_bf16_only_where_training_asks(simulated, monkeypatc
     assert not torch.equal(plain[0], low[0])                        # computed in bfloat16 ...
     torch.testing.assert_close(low[0], plain[0], atol=0.05, rtol=0.05)   # ... to its precision
     # In training, the steps run within the context, validation outside it.
-    seen, forward = [], SceneEncoder.forward
-
-    def spy(self, image):
-        seen.append((torch.is_grad_enabled(), tube_net._BF16.get()))
-        return forward(self, image)
-
-    monkeypatch.setattr(SceneEncoder, 'forward', spy)
-    ds = load_dataset(simulated.path)
-    cfg = TrainConfig(arch='tube', loss='scene', max_steps=4, eval_every=2, patience=100,
-                      seed=0, threads=1, split='scene', batch_size=16, encoder_bf16=True)
-    _in_training_steps_alone(ds, cfg, 'encoder_bf16', seen)
+    _in_training_steps_alone(simulated, monkeypatch, SceneEncoder, 'forward', tube_net._BF16,
+                             'encoder_bf16', loss='scene')
 
 
 def test_the_scene_nets_run_in_bf16_only_where_training_asks(simulated, monkeypatch):
@@ -480,18 +485,8 @@ def test_the_scene_nets_run_in_bf16_only_where_training_asks(simulated, monkeypa
         assert not torch.equal(a, b)                                # computed in bfloat16 ...
         assert (b - a).abs().max() <= 0.02 * a.abs().max()         # ... to its precision
     # In training, the full loss's steps run within the context, validation outside it.
-    seen, forward = [], ObjectNet.forward
-
-    def spy(self, image, code):
-        seen.append((torch.is_grad_enabled(), tube_net._BF16_NETS.get()))
-        return forward(self, image, code)
-
-    monkeypatch.setattr(ObjectNet, 'forward', spy)
-    ds = load_dataset(simulated.path)
-    cfg = TrainConfig(arch='tube', max_steps=4, eval_every=2, patience=100, seed=0, threads=1,
-                      split='scene', batch_size=16, scene_nets_bf16=True,
-                      arch_params={'depth_test': True})
-    _in_training_steps_alone(ds, cfg, 'scene_nets_bf16', seen)
+    _in_training_steps_alone(simulated, monkeypatch, ObjectNet, 'forward', tube_net._BF16_NETS,
+                             'scene_nets_bf16', arch_params={'depth_test': True})
 
 
 def test_the_compiled_renderer_draws_the_same_field_in_steps_alone(simulated, monkeypatch):
@@ -528,18 +523,8 @@ def test_the_compiled_renderer_draws_the_same_field_in_steps_alone(simulated, mo
         draw_field(kp, 64)
     assert not built
     # In training, the full loss's steps draw within the context, validation outside it.
-    seen, draw = [], tube_net.draw_field
-
-    def spy_draw(keypoints, size):
-        seen.append((torch.is_grad_enabled(), tube_net._COMPILED.get()))
-        return draw(keypoints, size)
-
-    monkeypatch.setattr(tube_net, 'draw_field', spy_draw)
-    ds = load_dataset(simulated.path)
-    cfg = TrainConfig(arch='tube', max_steps=4, eval_every=2, patience=100, seed=0, threads=1,
-                      split='scene', batch_size=16, compile_renderer=True,
-                      arch_params={'depth_test': True})
-    _in_training_steps_alone(ds, cfg, 'compile_renderer', seen)
+    _in_training_steps_alone(simulated, monkeypatch, tube_net, 'draw_field', tube_net._COMPILED,
+                             'compile_renderer', arch_params={'depth_test': True})
 
 
 def test_a_renderer_that_cannot_compile_is_refused_before_training(simulated, monkeypatch,

@@ -40,6 +40,21 @@ def pixel_grid(size: int, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tenso
     return xs.reshape(-1), ys.reshape(-1)
 
 
+#: Rows (B x V) from which :func:`nearest_segment` takes one segment at a time: with fewer
+#: (a prediction's one scene), the loop's per-segment overhead costs more than it saves.
+LOOP_ROWS = 16
+
+
+def _segment_distances(a, e, exy2, qx, qy) -> torch.Tensor:
+    """Return the signed distances (px) from the pixels to capsules ``a`` + t ``e``, in place."""
+    px, py = qx - a[..., X], qy - a[..., Y]
+    t = (px * e[..., X]).addcmul_(py, e[..., Y]).div_(exy2).clamp_(0.0, 1.0)
+    px.addcmul_(t, e[..., X], value=-1.0)                            # px, py: offsets from
+    py.addcmul_(t, e[..., Y], value=-1.0)                            # the nearest axis point
+    sd = px.mul_(px).addcmul_(py, py).add_(1e-6).sqrt_()
+    return sd.sub_(a[..., R]).addcmul_(t, e[..., R], value=-1.0)
+
+
 def nearest_segment(keypoints: torch.Tensor, qx: torch.Tensor, qy: torch.Tensor) -> torch.Tensor:
     """
     Return B x V x P: per pixel (``qx``, ``qy``: :func:`pixel_grid`), the nearest capsule.
@@ -47,9 +62,10 @@ def nearest_segment(keypoints: torch.Tensor, qx: torch.Tensor, qy: torch.Tensor)
     The only pass over every pixel x segment pair, so it runs without autograd and in
     place (a minimum's gradient reaches only the segment it picked anyway): what made the
     tube model's training step slow was this pass's B x V x (K-1) x P temporaries kept for
-    the backward pass (docs/model.md, "A faster renderer"). One segment at a time, a
-    running minimum (ties to the first, as ``min`` gives): B x V x P temporaries that stay
-    in cache took 0.6 of the time of one B x V x (K-1) x P pass, with the same answer.
+    the backward pass (docs/model.md, "A faster renderer"). From :data:`LOOP_ROWS` rows on,
+    one segment at a time with a running minimum (ties to the first, as ``min`` gives):
+    B x V x P temporaries that stay in cache took 0.6 of the time of the one pass over
+    B x V x (K-1) x P on two threads, with the same answer to the bit.
     """
     with torch.no_grad():
         kp = keypoints.detach()
@@ -64,16 +80,11 @@ def nearest_segment(keypoints: torch.Tensor, qx: torch.Tensor, qy: torch.Tensor)
             dx, dy = px - t * e[..., X], py - t * e[..., Y]
             sd = (dx * dx + dy * dy + 1e-6).sqrt() - a[..., R] - t * e[..., R]
             return sd.min(dim=2).indices
+        if a.shape[0] * a.shape[1] < LOOP_ROWS:
+            return _segment_distances(a, e, exy2, qx, qy).min(dim=2).indices
         best = nearest = None
-        for j in range(a.shape[2]):
-            aj, ej = a[:, :, j], e[:, :, j]                          # B x V x 1 x 4
-            ex, ey = ej[..., X], ej[..., Y]                          # B x V x 1
-            px, py = qx - aj[..., X], qy - aj[..., Y]                # B x V x P
-            t = (px * ex).addcmul_(py, ey).div_(exy2[:, :, j]).clamp_(0.0, 1.0)
-            px.addcmul_(t, ex, value=-1.0)                           # px, py: offsets from
-            py.addcmul_(t, ey, value=-1.0)                           # the nearest axis point
-            sd = px.mul_(px).addcmul_(py, py).add_(1e-6).sqrt_()
-            sd.sub_(aj[..., R]).addcmul_(t, ej[..., R], value=-1.0)
+        for j in range(a.shape[2]):                                  # B x V x P each
+            sd = _segment_distances(a[:, :, j], e[:, :, j], exy2[:, :, j], qx, qy)
             if best is None:
                 best, nearest = sd, torch.zeros(sd.shape, dtype=torch.long, device=sd.device)
             else:
