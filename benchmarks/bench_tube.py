@@ -37,13 +37,13 @@ def _median_s(fn, n: int, warm: int = 2) -> float:
     return _latency(fn, n=n, warm=warm)['median_ms'] / 1000
 
 
-def _alternated(step, n: int, rounds: int = 3) -> tuple[float, float]:
-    """Return the median seconds of ``step(False)`` and ``step(True)``, taken in turns."""
-    times = {False: [], True: []}
+def _alternated(step, n: int, options=(False, True), rounds: int = 3) -> tuple[float, ...]:
+    """Return the median seconds of ``step(option)`` per option, the options taken in turns."""
+    times = {o: [] for o in options}
     for _ in range(rounds):
-        for flag in (False, True):
-            times[flag].append(_median_s(lambda: step(flag), n))
-    return float(np.median(times[False])), float(np.median(times[True]))
+        for o in options:
+            times[o].append(_median_s(lambda: step(o), n))
+    return tuple(float(np.median(times[o])) for o in options)
 
 
 def run(checkpoint=PRETRAINED) -> dict:
@@ -86,8 +86,8 @@ def run(checkpoint=PRETRAINED) -> dict:
         # The reader phase's step (the scene term alone: the encoder), float32 and with its
         # convolutions in bfloat16 (TrainConfig.encoder_bf16); then the full-loss step with
         # the encoder in bfloat16 (the recipe), and with ObjectNet and BackgroundNet too
-        # (TrainConfig.scene_nets_bf16), and with the renderer compiled
-        # (TrainConfig.compile_renderer). Each pair alternated. The recipe's batches of 64
+        # (TrainConfig.scene_nets_bf16), or with the renderer compiled
+        # (TrainConfig.compile_renderer). Each set alternated. The recipe's batches of 64
         # rows hold about 64 placements, these 8: each row made its own by faint noise.
         reader = TubeLoss(scene_only=True, channels=1)
         xr = x + 1e-3 * torch.rand(x.shape, generator=torch.Generator().manual_seed(0))
@@ -101,12 +101,10 @@ def run(checkpoint=PRETRAINED) -> dict:
             opt.step()
         reader_s = _alternated(lambda bf16: train_step(reader, bf16, False), 4)
         out['reader_step_s'], out['reader_step_bf16_s'] = (round(v, 4) for v in reader_s)
-        full_s = _alternated(lambda nets: train_step(objective, True, nets), 3)
-        out['full_loss_step_encoder_bf16_s'], out['full_loss_step_scene_nets_bf16_s'] = (
-            round(v, 3) for v in full_s)
-        full_s = _alternated(lambda compiled: train_step(objective, True, False, compiled), 3)
-        out['full_loss_step_recipe_s'], out['full_loss_step_compiled_renderer_s'] = (
-            round(v, 3) for v in full_s)
+        full_s = _alternated(lambda extra: train_step(objective, True, *extra), 3,
+                             options=((False, False), (True, False), (False, True)))
+        (out['full_loss_step_encoder_bf16_s'], out['full_loss_step_scene_nets_bf16_s'],
+         out['full_loss_step_compiled_renderer_s']) = (round(v, 3) for v in full_s)
         out['cpu_bf16_supported'] = cpu_bf16_native()
         net.eval()
         initial = np.asarray(ds.initial[:BATCH])
