@@ -5,7 +5,8 @@ What the 20 000-sample pre-training and ``softshape evaluate`` spend their time 
 18: train to early stopping in <= 30 min); the reader step also with the encoder in
 bfloat16 (``--encoder-bf16``), the full-loss step also with the encoder in bfloat16 as the
 recipe trains it, with ObjectNet and BackgroundNet too (``--scene-nets-bf16``), and with
-the renderer compiled (``--compile-renderer``; its build, about 20 s, is not timed). Data:
+the renderer compiled (``--compile-renderer``; its build, about 20 s, is not timed), and
+Adam's update alone, a loop over the parameters or fused (``--fused-adam``). Data:
 128 stereo samples of the default contact-rich plan over 8 placements, simulated here
 (shape record, contact record and placements, as training sees them, and the object depth
 maps where the network has the depth test); network: the shipped checkpoint
@@ -105,6 +106,11 @@ def run(checkpoint=PRETRAINED) -> dict:
                              options=((False, False), (True, False), (False, True)))
         (out['full_loss_step_encoder_bf16_s'], out['full_loss_step_scene_nets_bf16_s'],
          out['full_loss_step_compiled_renderer_s']) = (round(v, 3) for v in full_s)
+        # Adam's update alone, the last step's gradients in place: the loop over the
+        # parameters (the default) and one fused kernel (TrainConfig.fused_adam).
+        adams = {False: opt, True: torch.optim.Adam(net.parameters(), lr=1e-5, fused=True)}
+        out['adam_step_ms'], out['adam_step_fused_ms'] = (
+            round(1000 * v, 2) for v in _alternated(lambda fused: adams[fused].step(), 20))
         out['cpu_bf16_supported'] = cpu_bf16_native()
         net.eval()
         initial = np.asarray(ds.initial[:BATCH])

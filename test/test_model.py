@@ -113,6 +113,35 @@ def test_training_is_seeded_and_reproducible(small_set):
     assert not all(torch.equal(a[k], c[k]) for k in a)
 
 
+def test_a_fused_adam_takes_the_loops_steps_rounded_differently(small_set, monkeypatch):
+    """fused_adam: Adam's one-kernel update, the same rule; seeded, and in the checkpoint."""
+    made, real = [], torch.optim.Adam
+
+    class Spy(real):
+        def __init__(self, *args, **kwargs):
+            made.append(kwargs.get('fused'))
+            super().__init__(*args, **kwargs)
+    monkeypatch.setattr(torch.optim, 'Adam', Spy)
+    # One validation, at the last step: the weights compared are those of step 6.
+    cfg = TrainConfig(arch='paper', batch_size=16, max_steps=6, eval_every=6, seed=5, threads=1)
+    loop = train(small_set, cfg, indices=range(60), progress=False)
+    cfg.fused_adam = True
+    fused = [train(small_set, cfg, indices=range(60), progress=False) for _ in range(2)]
+    assert made == [None, True, True]
+    a, b, c = (r.model.state_dict() for r in (*fused, loop))
+    assert all(torch.equal(a[k], b[k]) for k in a)                  # seeded
+    torch.manual_seed(cfg.seed)                                     # the seeded start
+    start = build_network('paper', 1, 1).state_dict()
+
+    def dist(x, y):
+        return sum(float((x[k] - y[k]).double().norm() ** 2) for k in x) ** 0.5
+    # The loop's update, rounded differently: far nearer the loop's weights than the six
+    # steps took either from where they began.
+    assert dist(a, c) < 0.01 * dist(c, start), (dist(a, c), dist(c, start))
+    assert fused[0].config['training']['fused_adam'] is True
+    assert loop.config['training']['fused_adam'] is False
+
+
 def _copy_ckpt(src, dst):
     dst.mkdir()
     for f in (CONFIG, WEIGHTS):

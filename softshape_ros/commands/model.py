@@ -26,6 +26,8 @@ SCENE_NETS_BF16_HELP = ("tube, the full loss: ObjectNet's and BackgroundNet's co
 COMPILE_RENDERER_HELP = ('tube, the full loss: compile the renderer with torch.compile (needs a '
                          'C++ compiler; about 20 s to build; docs/model.md, "A compiled '
                          'renderer")')
+FUSED_ADAM_HELP = ("Adam's update fused into one kernel over all parameters (the same rule, "
+                   'rounded differently; docs/model.md, "A fused optimiser")')
 
 
 def tube_options(args, command: str) -> dict:
@@ -53,7 +55,8 @@ def _train(args) -> int:
                       freeze_scene=args.freeze_scene, warmup=args.warmup,
                       val_fraction=args.val_fraction,
                       encoder_bf16=args.encoder_bf16, scene_nets_bf16=args.scene_nets_bf16,
-                      compile_renderer=args.compile_renderer, arch_params=arch_params)
+                      compile_renderer=args.compile_renderer, fused_adam=args.fused_adam,
+                      arch_params=arch_params)
     res = train(ds, cfg, out=args.out, indices=rows, progress=not args.quiet,
                 object_depths=object_depths)
     summary = {'checkpoint': args.out, 'steps': res.steps,
@@ -117,7 +120,7 @@ def _pretrain(args) -> int:
         'patience', 'threads', 'workers', 'keypoint_steps', 'keypoint_scene_batch',
         'reader_steps', 'head_steps', 'head_batch', 'val_fraction',
         'toward_share', 'sparse_share', 'far_share', 'outline', 'depth_test',
-        'encoder_bf16', 'scene_nets_bf16', 'compile_renderer', 'supersample')})
+        'encoder_bf16', 'scene_nets_bf16', 'compile_renderer', 'fused_adam', 'supersample')})
     out = args.out or f'models/{args.arch}_stereo_gray'
     print(json.dumps(pretrain(s, out, args.work, progress=not args.quiet)))
     return 0
@@ -158,6 +161,7 @@ def register(sub) -> None:
     p.add_argument('--encoder-bf16', action='store_true', help=ENCODER_BF16_HELP)
     p.add_argument('--scene-nets-bf16', action='store_true', help=SCENE_NETS_BF16_HELP)
     p.add_argument('--compile-renderer', action='store_true', help=COMPILE_RENDERER_HELP)
+    p.add_argument('--fused-adam', action='store_true', help=FUSED_ADAM_HELP)
     p.add_argument('--warmup', type=float, default=0.0,
                    help='share of --max-steps over which the rate rises to --lr before '
                         'its cosine (0: none)')
@@ -246,6 +250,9 @@ def register(sub) -> None:
     p.add_argument('--compile-renderer', action=argparse.BooleanOptionalAction, default=None,
                    help=COMPILE_RENDERER_HELP + '; default on for tube, '
                    '--no-compile-renderer: eager PyTorch (how the shipped checkpoint was made)')
+    p.add_argument('--fused-adam', action=argparse.BooleanOptionalAction, default=None,
+                   help=FUSED_ADAM_HELP + '; default on for tube, --no-fused-adam: the '
+                   'loop of the shipped checkpoint')
     p.add_argument('--quiet', action='store_true', help='no progress bars')
     p.set_defaults(func=_pretrain)
 

@@ -61,6 +61,7 @@ class PretrainSettings:
     encoder_bf16: bool = False      # tube: the scene encoder's convolutions in bfloat16
     scene_nets_bf16: bool = False   # tube: ObjectNet's and BackgroundNet's too (full loss)
     compile_renderer: bool = False  # tube: the renderer compiled (full loss; torch.compile)
+    fused_adam: bool = False        # every phase: Adam's update fused (TrainConfig.fused_adam)
     # The simulated images' samples per pixel a side (0: the camera's own pixels; several:
     # a mix, each placement rendered with one).
     supersample: int | tuple = 3
@@ -151,7 +152,8 @@ def pretrain(settings: PretrainSettings, out, work, progress: bool = True) -> di
                       scene_batch=settings.scene_batch, arch_params=tube_params,
                       encoder_bf16=settings.encoder_bf16,
                       scene_nets_bf16=settings.scene_nets_bf16,
-                      compile_renderer=settings.compile_renderer)
+                      compile_renderer=settings.compile_renderer,
+                      fused_adam=settings.fused_adam)
     ds = simulated_dataset(settings, work, progress)
     t0 = time.perf_counter()
     phases, res = train_in_phases(ds, cfg, settings.keypoint_steps,
