@@ -25,7 +25,7 @@ help:
 	@echo "make demo   - set up, then run the whole pipeline on the simulated rig (see README)"
 	@echo "make test   - set up, then run the test suite"
 	@echo "make bench  - set up, then run the benchmarks (JSON on stdout)"
-	@echo "make pretrain - rebuild a checkpoint on simulation: ARGS=\"--arch tube\" the demo's models/tube_stereo_gray as shipped, ARGS=\"--sparse-share 0\" models/ours_stereo_gray"
+	@echo "make pretrain - rebuild a checkpoint on simulation: ARGS=\"--arch tube --as-shipped\" the demo's models/tube_stereo_gray as shipped (ARGS=\"--arch tube\": the faster recipe since), ARGS=\"--sparse-share 0\" models/ours_stereo_gray"
 	@echo "make clean  - remove build products (keeps .venv)"
 
 setup: build
@@ -66,7 +66,7 @@ test: build
 bench: build
 	$(VPY) -m benchmarks $(ARGS)
 
-# Pre-trained checkpoints (docs/model.md), as shipped: ARGS="--arch tube --no-compile-renderer" models/tube_stereo_gray
+# Pre-trained checkpoints (docs/model.md), as shipped: ARGS="--arch tube --as-shipped" models/tube_stereo_gray
 # (the demo's), ARGS="--sparse-share 0" models/ours_stereo_gray (its data predates the sparse share).
 pretrain: build
 	$(VENV)/bin/softshape pretrain $(ARGS)

@@ -1,6 +1,7 @@
 """Experiments over both the simulator and the model: the Fig. 4(c) distance sweep."""
 
 import json
+from dataclasses import asdict
 
 import numpy as np
 import pytest
@@ -92,10 +93,23 @@ def test_pretrain_tube_runs_its_two_phases_and_reuses_the_data(tmp_path, capsys,
     # The shipped recipe's phases: reader, keypoints, heads, full (docs/model.md).
     recipe = PretrainSettings.for_arch('tube')
     assert (recipe.reader_steps, recipe.keypoint_steps, recipe.head_steps, recipe.max_steps,
-            recipe.depth_test, recipe.encoder_bf16) == (6000, 10000, 20000, 2400, True, True)
-    assert recipe.scene_nets_bf16 is False       # measured, not the default ("The scene nets")
-    assert recipe.compile_renderer is True      # "A compiled renderer" (off in these runs)
+            recipe.depth_test, recipe.encoder_bf16) == (4000, 10000, 10000, 2400, True, True)
+    # "A compiled renderer" (the renderer compiled: off in these runs), "The 30 minutes".
+    assert recipe.scene_nets_bf16 and recipe.compile_renderer and recipe.fused_adam
     assert recipe.val_fraction == 0.05          # the full phase's held-out placements
+    # How the shipped checkpoint was made: the recipe before the 30 minutes' changes.
+    shipped = PretrainSettings.for_arch('tube', as_shipped=True, head_steps=None, seed=3)
+    assert (shipped.reader_steps, shipped.head_steps, shipped.scene_nets_bf16,
+            shipped.compile_renderer, shipped.fused_adam, shipped.seed) == (
+                6000, 20000, False, False, False, 3)
+    changed = {'reader_steps', 'head_steps', 'scene_nets_bf16', 'compile_renderer',
+               'fused_adam', 'seed'}
+
+    def kept(settings):
+        return {k: v for k, v in asdict(settings).items() if k not in changed}
+    assert kept(shipped) == kept(recipe)
+    assert cli(['pretrain', '--as-shipped', '--out', str(tmp_path / 'o')]) != 0
+    assert "as_shipped: the tube checkpoint's settings, not 'ours'" in capsys.readouterr().err
     assert cli(args + ['--val-fraction', '0']) != 0          # refused before simulating
     assert 'val_fraction 0.0: the held-out share' in capsys.readouterr().err
     assert not (tmp_path / 'work').exists()
@@ -110,7 +124,7 @@ def test_pretrain_tube_runs_its_two_phases_and_reuses_the_data(tmp_path, capsys,
     assert out['settings']['depth_test'] is True and cfg['arch_params']['depth_test'] is True
     assert model.depth_test and model.visibility is None
     assert cfg['training']['encoder_bf16'] is True          # the recipe's default
-    assert cfg['training']['scene_nets_bf16'] is False
+    assert cfg['training']['scene_nets_bf16'] and cfg['training']['fused_adam']
     assert cfg['training']['compile_renderer'] is False       # --no-compile-renderer
     _, first = load_checkpoint(tmp_path / 'work' / 'tube_keypoints')
     assert first['training']['loss'] == 'keypoints' and first['training']['steps'] == 3
@@ -180,6 +194,7 @@ def test_pretrain_tube_runs_its_two_phases_and_reuses_the_data(tmp_path, capsys,
     assert cfg['training']['scene_nets_bf16'] and out['settings']['scene_nets_bf16']
     assert cfg['training']['compile_renderer'] and out['settings']['compile_renderer']
     assert [c['compile_renderer'] for c in chain] == [True] * 3
+    assert [c['fused_adam'] for c in chain] == [True] * 3 and cfg['training']['fused_adam']
     # A machine where it cannot compile: refused before simulating, the way out named.
 
     def cannot():

@@ -66,9 +66,11 @@ def test_cli_train_evaluate_export(tmp_path, capsys):
     ck = tmp_path / 'ck'
     assert cli(['train', '--dataset', str(ds.path), '--out', str(ck), '--arch', 'ours',
                 '--split', 'scene', '--val-fraction', '0.5', '--batch-size', '16',
-                '--max-steps', '20', '--eval-every', '5', '--threads', '1', '--quiet']) == 0
+                '--max-steps', '20', '--eval-every', '5', '--threads', '1', '--quiet',
+                '--fused-adam']) == 0
     summary = json.loads(capsys.readouterr().out)
     assert summary['steps'] <= 20 and summary['val_rmse_255'] > 0
+    assert json.loads((ck / 'config.json').read_text())['training']['fused_adam'] is True
     with pytest.raises(SystemExit, match='--outline is a tube model option'):
         cli(['train', '--dataset', str(ds.path), '--out', str(ck), '--arch', 'ours',
              '--outline'])

@@ -115,7 +115,7 @@ def _reproduce(args) -> int:
 
 def _pretrain(args) -> int:
     from softshape_ros.experiments.pretrain import PretrainSettings, pretrain
-    s = PretrainSettings.for_arch(args.arch, **{k: getattr(args, k) for k in (
+    s = PretrainSettings.for_arch(args.arch, args.as_shipped, **{k: getattr(args, k) for k in (
         'samples', 'scenes', 'seed', 'max_steps', 'batch_size', 'scene_batch', 'lr', 'eval_every',
         'patience', 'threads', 'workers', 'keypoint_steps', 'keypoint_scene_batch',
         'reader_steps', 'head_steps', 'head_batch', 'val_fraction',
@@ -217,7 +217,7 @@ def register(sub) -> None:
     p.set_defaults(func=_reproduce)
 
     from softshape_ros.experiments.distance_sweep import SUPERSAMPLE
-    from softshape_ros.experiments.pretrain import TUBE, PretrainSettings
+    from softshape_ros.experiments.pretrain import TUBE, TUBE_AS_SHIPPED, PretrainSettings
     d = PretrainSettings()
     p = sub.add_parser('pretrain', help='simulate a dataset and pre-train ours on it '
                                         '(the checkpoint the demo fine-tunes)')
@@ -253,6 +253,11 @@ def register(sub) -> None:
     p.add_argument('--fused-adam', action=argparse.BooleanOptionalAction, default=None,
                    help=FUSED_ADAM_HELP + '; default on for tube, --no-fused-adam: the '
                    'loop of the shipped checkpoint')
+    p.add_argument('--as-shipped', action='store_true',
+                   help='tube: the settings models/tube_stereo_gray was made with (before '
+                        'the recipe\'s faster ones: ' + ', '.join(
+                            f'{k} {v}' for k, v in TUBE_AS_SHIPPED.items()
+                            if TUBE.get(k) != v) + '); other flags still override them')
     p.add_argument('--quiet', action='store_true', help='no progress bars')
     p.set_defaults(func=_pretrain)
 
