@@ -90,7 +90,7 @@ def test_pretrain_tube_runs_its_two_phases_and_reuses_the_data(tmp_path, capsys,
             '--max-steps', '2', '--batch-size', '8', '--eval-every', '1', '--threads', '1',
             '--workers', '1', '--quiet', '--reader-steps', '0', '--head-steps', '0',
             '--no-compile-renderer']
-    # The shipped recipe's phases: reader, keypoints, heads, full (docs/model.md).
+    # The recipe's phases: reader, keypoints, heads, full (docs/model.md).
     recipe = PretrainSettings.for_arch('tube')
     assert (recipe.reader_steps, recipe.keypoint_steps, recipe.head_steps, recipe.max_steps,
             recipe.depth_test, recipe.encoder_bf16) == (4000, 10000, 10000, 2400, True, True)

@@ -27,7 +27,7 @@ COMPILE_RENDERER_HELP = ('tube, the full loss: compile the renderer with torch.c
                          'C++ compiler; about 20 s to build; docs/model.md, "A compiled '
                          'renderer")')
 FUSED_ADAM_HELP = ("Adam's update fused into one kernel over all parameters (the same rule, "
-                   'rounded differently; docs/model.md, "A fused optimiser")')
+                   'rounded differently; docs/model.md, "The 30 minutes")')
 
 
 def tube_options(args, command: str) -> dict:
@@ -246,7 +246,8 @@ def register(sub) -> None:
                    help=ENCODER_BF16_HELP + '; default on for tube (the shipped recipe), '
                    '--no-encoder-bf16: float32')
     p.add_argument('--scene-nets-bf16', action=argparse.BooleanOptionalAction, default=None,
-                   help=SCENE_NETS_BF16_HELP + '; --no-scene-nets-bf16: float32')
+                   help=SCENE_NETS_BF16_HELP + '; default on for tube, --no-scene-nets-bf16: '
+                   'float32 (how the shipped checkpoint was made)')
     p.add_argument('--compile-renderer', action=argparse.BooleanOptionalAction, default=None,
                    help=COMPILE_RENDERER_HELP + '; default on for tube, '
                    '--no-compile-renderer: eager PyTorch (how the shipped checkpoint was made)')

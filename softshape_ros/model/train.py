@@ -95,8 +95,8 @@ class TrainConfig:
     compile_renderer: bool = False
     # Adam's update as one fused kernel over all parameters (torch.optim.Adam(fused=True)),
     # not a loop of about ten small operations per tensor: the same rule, rounded
-    # differently; a tube keypoint step in about 0.85 of the time (docs/model.md, "A fused
-    # optimiser").
+    # differently; a tube keypoint step in about 0.85 of the time (docs/model.md, "The 30
+    # minutes").
     fused_adam: bool = False
     arch_params: dict = field(default_factory=dict)
 
