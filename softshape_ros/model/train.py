@@ -506,8 +506,7 @@ def _fit(net, rows, objective, config, lr, rank, world, progress, desc, copy_mse
     unused = isinstance(objective, TubeLoss)
     model = (torch.nn.parallel.DistributedDataParallel(net, find_unused_parameters=unused)
              if world > 1 else net)
-    opt = torch.optim.Adam(net.parameters(), lr=lr, **({'fused': True} if config.fused_adam
-                                                       else {}))
+    opt = torch.optim.Adam(net.parameters(), lr=lr, fused=config.fused_adam or None)  # None: loop
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: _rate(s, config))
     gen = torch.Generator().manual_seed(config.seed)
     xt, tt, pt = rows.train
