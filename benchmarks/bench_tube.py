@@ -5,7 +5,8 @@ What the 20 000-sample pre-training and ``softshape evaluate`` spend their time 
 18: train to early stopping in <= 30 min); the reader step also with the encoder in
 bfloat16 (``--encoder-bf16``), the full-loss step also with the encoder in bfloat16 as the
 recipe trains it, with ObjectNet and BackgroundNet too (``--scene-nets-bf16``), and with
-the renderer compiled (``--compile-renderer``; its build, about 20 s, is not timed), and
+the renderer compiled (``--compile-renderer``; its build, about 20 s, is not timed), with
+all three and Adam fused (the recipe's full phase, ``full_loss_step_pretrain_s``), and
 Adam's update alone, a loop over the parameters or fused (``--fused-adam``). Data:
 128 stereo samples of the default contact-rich plan over 8 placements, simulated here
 (shape record, contact record and placements, as training sees them, and the object depth
@@ -93,22 +94,27 @@ def run(checkpoint=PRETRAINED) -> dict:
         reader = TubeLoss(scene_only=True, channels=1)
         xr = x + 1e-3 * torch.rand(x.shape, generator=torch.Generator().manual_seed(0))
 
-        def train_step(loss_fn, encoder, nets, compiled=False):
+        adams = {False: opt, True: torch.optim.Adam(net.parameters(), lr=1e-5, fused=True)}
+
+        def train_step(loss_fn, encoder, nets, compiled=False, fused=False):
             net.train()
             with encoder_bf16(encoder), scene_nets_bf16(nets), compiled_renderer(compiled):
                 loss, _ = loss_fn(net, xr, p, t, truth, free, scene, objects)
-            opt.zero_grad(set_to_none=True)
+            adams[fused].zero_grad(set_to_none=True)
             loss.backward()
-            opt.step()
+            adams[fused].step()
         reader_s = _alternated(lambda bf16: train_step(reader, bf16, False), 4)
         out['reader_step_s'], out['reader_step_bf16_s'] = (round(v, 4) for v in reader_s)
+        # The last: all three with Adam fused, the step `softshape pretrain --arch tube`'s
+        # full phase takes (its defaults since docs/model.md, "The 30 minutes").
         full_s = _alternated(lambda extra: train_step(objective, True, *extra), 3,
-                             options=((False, False), (True, False), (False, True)))
+                             options=((False, False, False), (True, False, False),
+                                      (False, True, False), (True, True, True)))
         (out['full_loss_step_encoder_bf16_s'], out['full_loss_step_scene_nets_bf16_s'],
-         out['full_loss_step_compiled_renderer_s']) = (round(v, 3) for v in full_s)
+         out['full_loss_step_compiled_renderer_s'],
+         out['full_loss_step_pretrain_s']) = (round(v, 3) for v in full_s)
         # Adam's update alone, the last step's gradients in place: the loop over the
         # parameters (the default) and one fused kernel (TrainConfig.fused_adam).
-        adams = {False: opt, True: torch.optim.Adam(net.parameters(), lr=1e-5, fused=True)}
         out['adam_step_ms'], out['adam_step_fused_ms'] = (
             round(1000 * v, 2) for v in _alternated(lambda fused: adams[fused].step(), 20))
         out['cpu_bf16_supported'] = cpu_bf16_native()

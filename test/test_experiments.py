@@ -93,17 +93,17 @@ def test_pretrain_tube_runs_its_two_phases_and_reuses_the_data(tmp_path, capsys,
     # The recipe's phases: reader, keypoints, heads, full (docs/model.md).
     recipe = PretrainSettings.for_arch('tube')
     assert (recipe.reader_steps, recipe.keypoint_steps, recipe.head_steps, recipe.max_steps,
-            recipe.depth_test, recipe.encoder_bf16) == (4000, 10000, 10000, 2400, True, True)
+            recipe.depth_test, recipe.encoder_bf16) == (4000, 8000, 10000, 2400, True, True)
     # "A compiled renderer" (the renderer compiled: off in these runs), "The 30 minutes".
     assert recipe.scene_nets_bf16 and recipe.compile_renderer and recipe.fused_adam
     assert recipe.val_fraction == 0.05          # the full phase's held-out placements
     # How the shipped checkpoint was made: the recipe before the 30 minutes' changes.
     shipped = PretrainSettings.for_arch('tube', as_shipped=True, head_steps=None, seed=3)
-    assert (shipped.reader_steps, shipped.head_steps, shipped.scene_nets_bf16,
-            shipped.compile_renderer, shipped.fused_adam, shipped.seed) == (
-                6000, 20000, False, False, False, 3)
-    changed = {'reader_steps', 'head_steps', 'scene_nets_bf16', 'compile_renderer',
-               'fused_adam', 'seed'}
+    assert (shipped.reader_steps, shipped.keypoint_steps, shipped.head_steps,
+            shipped.scene_nets_bf16, shipped.compile_renderer, shipped.fused_adam,
+            shipped.seed) == (6000, 10000, 20000, False, False, False, 3)
+    changed = {'reader_steps', 'keypoint_steps', 'head_steps', 'scene_nets_bf16',
+               'compile_renderer', 'fused_adam', 'seed'}
 
     def kept(settings):
         return {k: v for k, v in asdict(settings).items() if k not in changed}
