@@ -39,7 +39,8 @@ def test_silhouette_iou_and_tip_separate_good_from_copy():
 
 @pytest.mark.parametrize('arch, params', [
     ('paper', {}), ('ours', {}), ('tube', {'scene_visibility': True}),   # what training builds
-    ('tube', {'scene_visibility': True, 'depth_test': True})])          # ... and pretrain
+    ('tube', {'scene_visibility': True, 'depth_test': True}),           # ... and pretrain
+    ('tube', {'scene_visibility': True, 'depth_test': True, 'members': 2})])  # and ensemble
 def test_onnx_export_matches_pytorch(arch, params, tmp_path):
     torch.manual_seed(1)
     net = build_network(arch, 2, 3, **params)

@@ -887,3 +887,74 @@ def test_a_depth_test_model_learns_where_the_object_is(simulated, tmp_path):
     with pytest.raises(CheckpointError, match='depth_test'):
         train(ds, TrainConfig(arch='tube', init=str(tmp_path / 'ck'), max_steps=1,
                               arch_params={'depth_test': False}), progress=False)
+
+
+def _tube_checkpoint(path, seed: int, config: dict, views: int = 2):
+    """A tube network of the shipped recipe's build, its weights moved off the seeded start."""
+    torch.manual_seed(seed)
+    net = build_network('tube', views, 1, **config['arch_params'])
+    with torch.no_grad():
+        for p in net.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    return save_checkpoint(path, net, config), net.eval()
+
+
+def test_trainings_averaged_draw_their_mean_keypoints_with_the_first_renderer(
+        simulated, tmp_path, capsys):
+    from softshape_ros.model.ensemble import ensemble
+    cfg = load_checkpoint(PRETRAINED)[1]
+    (a_ck, a), (b_ck, b) = (_tube_checkpoint(tmp_path / f'm{s}', s, cfg) for s in (1, 2))
+    out = ensemble([a_ck, b_ck], tmp_path / 'both')
+    model, saved = load_checkpoint(out)
+    assert saved['arch_params'] == dict(cfg['arch_params'], members=2)
+    assert [m['checkpoint'] for m in saved['ensemble']] == [str(a_ck), str(b_ck)]
+    x, p = torch.rand(3, 2, 64, 64), torch.rand(3, 6)
+    with torch.no_grad():
+        got, one, two = (n(x, p, parts=True) for n in (model, a, b))
+        mean = (one.keypoints + two.keypoints) / 2
+        assert not torch.allclose(one.keypoints, two.keypoints, atol=1e-2)   # two trainings
+        assert torch.allclose(got.keypoints, mean, atol=1e-5)
+        assert torch.allclose(got.free_keypoints, (one.free_keypoints + two.free_keypoints)
+                              / 2, atol=1e-5)
+        assert torch.allclose(model(x, p, parts='keypoints')[0], mean, atol=1e-5)
+        # Drawn by the first one: its scene parts, shading and depth test, the mean shape.
+        scene = a.scene_parts(x)
+        cond = torch.cat([a.keypoints(scene.code, p)[2], scene.code], 1)
+        want = a.render(mean, x, scene.background, cond, scene.objects)[0]
+        assert torch.allclose(got.image, want, atol=1e-5)
+        assert not torch.allclose(got.image, one.image, atol=1e-3)
+    # It predicts as any checkpoint does, one scene's actuations from its cached parts.
+    pred = Predictor.from_checkpoint(out)
+    rng = np.random.default_rng(0)
+    img = rng.integers(0, 256, (2, 1, 64, 64), dtype=np.uint8)
+    pressures = rng.uniform(0, 4e4, (4, 6))
+    many = pred.predict_batch(np.repeat(img[None], 4, 0), list(pressures))
+    assert np.array_equal(many[2], Predictor.from_checkpoint(out).predict(img, pressures[2]))
+    # Refused, the reason named: one member, an ensemble as a member, other views or
+    # another architecture; training an ensemble further.
+    with pytest.raises(CheckpointError, match='two checkpoints or more'):
+        ensemble([a_ck], tmp_path / 'x')
+    with pytest.raises(CheckpointError, match='already an ensemble of 2'):
+        ensemble([out, a_ck], tmp_path / 'x')
+    mono, _ = _tube_checkpoint(tmp_path / 'mono', 3, dict(cfg, views=['main']), views=1)
+    with pytest.raises(CheckpointError, match=r"views \['main'\] \(first: \['main', 'side'\]"):
+        ensemble([a_ck, mono], tmp_path / 'x')
+    ours = save_checkpoint(tmp_path / 'ours', build_network('ours', 2, 1),
+                           dict(cfg, arch='ours', arch_params={}))
+    with pytest.raises(CheckpointError, match="architecture 'ours'; ensembles average"):
+        ensemble([a_ck, ours], tmp_path / 'x')
+    assert not (tmp_path / 'x').exists()
+    # The command: the same checkpoint, and a refusal as a message and an exit code.
+    from softshape_ros.cli import main as cli
+    assert cli(['ensemble', str(a_ck), str(b_ck), '--out', str(tmp_path / 'cli')]) == 0
+    assert json.loads(capsys.readouterr().out)['members'] == 2
+    assert (tmp_path / 'cli' / 'model.safetensors').read_bytes() == (
+        out / 'model.safetensors').read_bytes()
+    assert cli(['ensemble', str(a_ck), '--out', str(tmp_path / 'x')]) != 0
+    assert 'two checkpoints or more' in capsys.readouterr().err
+    ds = load_dataset(simulated.path)
+    with pytest.raises(CheckpointError, match='an ensemble of 2 trainings'):
+        train(ds, TrainConfig(arch='tube', init=str(out), max_steps=1), progress=False)
+    with pytest.raises(ValueError, match='members 2: an ensemble is made of trained'):
+        train(ds, TrainConfig(arch='tube', max_steps=1, arch_params={'members': 2}),
+              progress=False)

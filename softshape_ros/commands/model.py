@@ -98,6 +98,13 @@ def _export(args) -> int:
     return 0
 
 
+def _ensemble(args) -> int:
+    from softshape_ros.model.ensemble import ensemble
+    out = ensemble(args.checkpoints, args.out)
+    print(json.dumps({'checkpoint': str(out), 'members': len(args.checkpoints)}))
+    return 0
+
+
 def _reproduce(args) -> int:
     from softshape_ros.experiments.reproduction import reproduce_with_sweep
     from softshape_ros.model.reproduce import ReproConfig
@@ -193,6 +200,14 @@ def register(sub) -> None:
     p.add_argument('--checkpoint', required=True)
     p.add_argument('--out', required=True, help='.onnx file to write')
     p.set_defaults(func=_export)
+
+    p = sub.add_parser('ensemble', help='average tube trainings: one checkpoint drawing '
+                                        'the mean of their keypoints with the first\'s '
+                                        'renderer (docs/model.md, "Trainings averaged")')
+    p.add_argument('checkpoints', nargs='+', help='two or more tube checkpoints, the '
+                                                  'drawing one first')
+    p.add_argument('--out', required=True, help='checkpoint folder to write')
+    p.set_defaults(func=_ensemble)
 
     p = sub.add_parser('reproduce', help="the paper's RMSE-vs-size study, paper vs ours")
     p.add_argument('--dataset', required=True, help='stereo dataset (mono uses its 1st view)')

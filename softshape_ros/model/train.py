@@ -384,6 +384,9 @@ def _network(ds, config, rows, sil):
     torch.manual_seed(config.seed)
     if config.init is None:
         params = dict(config.arch_params)
+        if params.get('members', 1) != 1:
+            raise ValueError(f'members {params["members"]}: an ensemble is made of trained '
+                             'checkpoints (softshape ensemble), not trained as one')
         truth = rows.train_shape[0]
         if config.arch == 'tube':
             params.setdefault('scene_visibility', True)
@@ -399,6 +402,10 @@ def _network(ds, config, rows, sil):
                                               rows.train_shape[2])
         return net, params, None
     net, cfg = load_checkpoint(config.init)
+    if cfg['arch_params'].get('members', 1) > 1:
+        raise CheckpointError(f'{config.init}: an ensemble of {cfg["arch_params"]["members"]} '
+                              'trainings; train a member, then average them again '
+                              '(softshape ensemble)')
     want = {'arch': config.arch, 'views': ds.views, 'channels': ds.channels,
             'image_size': int(ds.meta.get('image_size', 64)),
             'max_pressure_pa': [float(v) for v in ds.max_pressure_pa]}

@@ -28,6 +28,11 @@ image loss of the composite (with the predicted keypoints, and with the true one
 background, visibility and shading learn from exact shapes) and a masked L1 of the
 background where the true robot is not; on recorded bags (no shape record) with the image
 loss alone: the renderer is differentiable.
+
+An **ensemble** (``members`` > 1, made by :func:`~softshape_ros.model.ensemble.ensemble`
+from separately trained checkpoints) keeps the other trainings' keypoint networks beside
+its own and draws the mean of their keypoints with its own renderer: the trainings' misses
+on new placements differ, and their mean misses less (docs/model.md, "Trainings averaged").
 """
 
 from __future__ import annotations
@@ -81,6 +86,8 @@ class SceneParts(NamedTuple):
     background: torch.Tensor        # B x VC x S x S: the scene with the robot removed
     # B x 2V x S x S: ObjectNet's occupancy logits, then depths (depth_test; else B x 0)
     objects: torch.Tensor
+    # B x (M - 1) code: the other keypoint members' scene codes (an ensemble; else B x 0)
+    member_codes: torch.Tensor
 
 
 def mlp(cin: int, hidden: int, cout: int, zero_last: bool = True) -> nn.Sequential:
@@ -512,10 +519,16 @@ class TubeNet(nn.Module):
 
     def __init__(self, views: int, channels: int, keypoints: int = KEYPOINTS, size: int = 64,
                  cond: int = 64, scene_visibility: bool = False, outline: bool = False,
-                 depth_test: bool = False):
+                 depth_test: bool = False, members: int = 1):
         super().__init__()
         self.views, self.channels, self.size = int(views), int(channels), int(size)
         self.keypoints = KeypointNet(views, channels, keypoints, size, cond=cond)
+        if int(members) < 1:
+            raise ValueError(f'members {members}: an ensemble has at least one')
+        # An ensemble's other keypoint networks (see the module notes); none by default, so
+        # checkpoints of one training hold the same tensors as before.
+        self.members = nn.ModuleList(KeypointNet(views, channels, keypoints, size, cond=cond)
+                                     for _ in range(int(members) - 1))
         self.background = BackgroundNet(views, channels)
         code = self.keypoints.scene.describe.in_features
         # True (``softshape train --depth-test``): the robot is hidden where ObjectNet puts
@@ -567,7 +580,25 @@ class TubeNet(nn.Module):
         # Without the depth test, B x 0 (a slice: keeps the batch size symbolic for export).
         objects = (torch.cat(self.objects(image, code), 1) if self.depth_test
                    else image.flatten(1)[:, :0])
-        return code, described, self.background(image, self.keypoints.rest()), objects
+        return (code, described, self.background(image, self.keypoints.rest()), objects,
+                self._member_codes(image))
+
+    def _member_codes(self, image: torch.Tensor) -> torch.Tensor:
+        """B x VC x S x S rest images -> B x (M - 1) code: the other members' scene codes."""
+        if not len(self.members):
+            return image.flatten(1)[:, :0]
+        return torch.cat([m.scene(image)[0] for m in self.members], 1)
+
+    def _mean_keypoints(self, kp, free, member_codes, pressure):
+        """The members' mean keypoints and free keypoints (B x V x K x 4 each)."""
+        if not len(self.members):
+            return kp, free
+        kps, frees = [kp], [free]
+        for m, code in zip(self.members, member_codes.chunk(len(self.members), 1)):
+            k, f, _ = m(code, pressure)
+            kps.append(k)
+            frees.append(f)
+        return torch.stack(kps).mean(0), torch.stack(frees).mean(0)
 
     def render(self, keypoints, image, background, cond, objects):
         """
@@ -608,12 +639,18 @@ class TubeNet(nn.Module):
         K x 4, the shape record) also draws the composite from the true keypoints.
         """
         if parts == 'codes':            # the keypoint heads alone (a frozen encoder's codes)
+            if len(self.members):
+                raise ValueError('an ensemble\'s members have their own codes: train each '
+                                 'member, then average them (softshape ensemble)')
             return (*self.keypoints(image, pressure)[:2], None)
         if parts == 'keypoints':
             code, described = per_scene(self.keypoints.scene, image)
-            return (*self.keypoints(code, pressure)[:2], described)
+            kp, free, _ = self.keypoints(code, pressure)
+            members = per_scene(lambda i: (self._member_codes(i),), image)[0]
+            return (*self._mean_keypoints(kp, free, members, pressure), described)
         scene = self.scene_parts(image)
         kp, free, cond = self.keypoints(scene.code, pressure)
+        kp, free = self._mean_keypoints(kp, free, scene.member_codes, pressure)
         if self.scene_visibility:
             cond = torch.cat([cond, scene.code], 1)                  # B x (cond + code)
         # With the shape record the background learns only where the scene is seen without
