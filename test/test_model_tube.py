@@ -953,8 +953,22 @@ def test_trainings_averaged_draw_their_mean_keypoints_with_the_first_renderer(
     assert cli(['ensemble', str(a_ck), '--out', str(tmp_path / 'x')]) != 0
     assert 'two checkpoints or more' in capsys.readouterr().err
     ds = load_dataset(simulated.path)
-    with pytest.raises(CheckpointError, match='an ensemble of 2 trainings'):
-        train(ds, TrainConfig(arch='tube', init=str(out), max_steps=1), progress=False)
+    # Fine-tuned whole (the demo's fine-tune on a bag): the members train through their
+    # mean, and it stays an ensemble (main view alone, as this dataset).
+    other, _ = _tube_checkpoint(tmp_path / 'mono2', 4, dict(cfg, views=['main']), views=1)
+    monos = ensemble([mono, other], tmp_path / 'monos')
+    with pytest.raises(CheckpointError, match='an ensemble of 2 trainings: each member'):
+        train(ds, TrainConfig(arch='tube', init=str(monos), max_steps=1, loss='keypoints',
+                              freeze_scene=True), progress=False)
+    train(ds, TrainConfig(arch='tube', init=str(monos), max_steps=2, batch_size=8,
+                          eval_every=2, threads=1, split='scene'),
+          out=tmp_path / 'tuned', progress=False)
+    tuned, tuned_cfg = load_checkpoint(tmp_path / 'tuned')
+    assert tuned_cfg['arch_params']['members'] == 2 and len(tuned.members) == 1
+    before = load_checkpoint(monos)[0].state_dict()
+    moved = {k for k, v in tuned.state_dict().items() if not torch.equal(v, before[k])}
+    assert any(k.startswith('members.0.correct') for k in moved)
+    assert any(k.startswith('keypoints.correct') for k in moved)
     with pytest.raises(ValueError, match='members 2: an ensemble is made of trained'):
         train(ds, TrainConfig(arch='tube', max_steps=1, arch_params={'members': 2}),
               progress=False)

@@ -23,7 +23,7 @@ def register(sub) -> None:
     p.add_argument('--pretrained', default=d.pretrained,
                    help="checkpoint to fine-tune ('' = train ours from scratch; default: "
                         "the shipped models/tube_stereo_gray, rebuilt by make pretrain "
-                        "ARGS='--arch tube')")
+                        "ARGS='--arch tube --as-shipped'; an ensemble fine-tunes whole)")
     p.add_argument('--finetune-lr', type=float, default=d.finetune_lr,
                    help='Adam learning rate when fine-tuning the pre-trained checkpoint '
                         '(default: 3e-4 for tube, 1e-3 for ours and paper)')

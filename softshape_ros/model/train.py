@@ -402,10 +402,12 @@ def _network(ds, config, rows, sil):
                                               rows.train_shape[2])
         return net, params, None
     net, cfg = load_checkpoint(config.init)
-    if cfg['arch_params'].get('members', 1) > 1:
+    if cfg['arch_params'].get('members', 1) > 1 and config.freeze_scene:
+        # Fine-tuned whole, an ensemble trains its members through their mean; the heads
+        # on one frozen encoder's codes would leave the other members' unread.
         raise CheckpointError(f'{config.init}: an ensemble of {cfg["arch_params"]["members"]} '
-                              'trainings; train a member, then average them again '
-                              '(softshape ensemble)')
+                              'trainings: each member has its own scene encoder, so its heads '
+                              'do not train on frozen codes (freeze_scene)')
     want = {'arch': config.arch, 'views': ds.views, 'channels': ds.channels,
             'image_size': int(ds.meta.get('image_size', 64)),
             'max_pressure_pa': [float(v) for v in ds.max_pressure_pa]}
