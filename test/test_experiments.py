@@ -138,6 +138,24 @@ def test_pretrain_tube_runs_its_two_phases_and_reuses_the_data(tmp_path, capsys,
     assert (data / 'meta.json').stat().st_mtime_ns == stamp
     meta = json.loads((data / 'meta.json').read_text())
     assert meta['simulator']['sparse_share'] > 0
+    # --members 2: seeds 0 and 1 trained one after the other, each in its own folder (seed
+    # 0's data reused, seed 1's simulated), then averaged into one checkpoint.
+    assert cli(args[:-1] + ['--arch', 'ours', '--members', '2']) != 0
+    assert "ensembles average the tube model's keypoints, not 'ours'" in \
+        capsys.readouterr().err
+    both = args + ['--out', str(tmp_path / 'both'), '--members', '2']     # the last --out
+    assert cli(both) == 0
+    out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert [m['settings']['seed'] for m in out['members']] == [0, 1]
+    assert (data / 'meta.json').stat().st_mtime_ns == stamp
+    model, cfg = load_checkpoint(tmp_path / 'both')
+    assert cfg['arch_params']['members'] == 2 and len(model.members) == 1
+    work = tmp_path / 'work'
+    assert [m['checkpoint'] for m in cfg['ensemble']] == [
+        str(work / f'member_seed{s}' / 'checkpoint') for s in (0, 1)]
+    _, member = load_checkpoint(work / 'member_seed1' / 'checkpoint')
+    assert member['dataset']['path'].endswith('sim_40_4_1')
+    assert member['training']['init_from'] == str(work / 'member_seed1' / 'tube_keypoints')
     # Other plan settings: the data is simulated again, not taken from the cache.
     assert cli(args + ['--sparse-share', '0', '--max-steps', '1', '--keypoint-steps', '1',
                        '--no-depth-test', '--no-encoder-bf16']) == 0

@@ -127,7 +127,8 @@ def _pretrain(args) -> int:
         'patience', 'threads', 'workers', 'keypoint_steps', 'keypoint_scene_batch',
         'reader_steps', 'head_steps', 'head_batch', 'val_fraction',
         'toward_share', 'sparse_share', 'far_share', 'outline', 'depth_test',
-        'encoder_bf16', 'scene_nets_bf16', 'compile_renderer', 'fused_adam', 'supersample')})
+        'encoder_bf16', 'scene_nets_bf16', 'compile_renderer', 'fused_adam', 'supersample',
+        'members')})
     out = args.out or f'models/{args.arch}_stereo_gray'
     print(json.dumps(pretrain(s, out, args.work, progress=not args.quiet)))
     return 0
@@ -254,6 +255,9 @@ def register(sub) -> None:
                        help=f'default {getattr(d, flag.replace("-", "_"))} (ours)')
     p.add_argument('--workers', type=int, default=None,
                    help='simulation processes (0: one per core)')
+    p.add_argument('--members', type=int, default=None,
+                   help='tube: N trainings, seeds SEED to SEED+N-1 (each in WORK/member_seedS), '
+                        'averaged into one checkpoint (softshape ensemble; default 1)')
     p.add_argument('--outline', action='store_true', default=None, help=OUTLINE_HELP)
     p.add_argument('--depth-test', action=argparse.BooleanOptionalAction, default=None,
                    help=DEPTH_TEST_HELP + '; default on for tube (the shipped recipe)')

@@ -16,7 +16,7 @@ from __future__ import annotations
 import json
 import time
 import warnings
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 from softshape_ros.config import load_rig_config
@@ -65,6 +65,9 @@ class PretrainSettings:
     # The simulated images' samples per pixel a side (0: the camera's own pixels; several:
     # a mix, each placement rendered with one).
     supersample: int | tuple = 3
+    # > 1: that many trainings, seeds ``seed``, ``seed + 1``, ..., averaged into one
+    # checkpoint (tube; model.ensemble, docs/model.md "Trainings averaged").
+    members: int = 1
 
     @classmethod
     def for_arch(cls, arch: str, as_shipped: bool = False, **given) -> 'PretrainSettings':
@@ -145,8 +148,17 @@ def simulated_dataset(settings: PretrainSettings, work, progress: bool = True):
     return load_dataset(path)
 
 
-def pretrain(settings: PretrainSettings, out, work, progress: bool = True) -> dict:
-    """Simulate (or reuse) the data, train ``settings.arch``, write the checkpoint to ``out``."""
+def pretrain(settings: PretrainSettings, out, work, progress: bool = True,
+             phase_dir=None) -> dict:
+    """
+    Simulate (or reuse) the data, train ``settings.arch``, write the checkpoint to ``out``.
+
+    ``phase_dir``: the folder of the phases before the last (default ``work``). With
+    ``settings.members`` > 1, each member's seed is trained in ``work``/``member_seed<N>``
+    (its data in ``work`` as any seed's) and the ensemble written to ``out``.
+    """
+    if settings.members != 1:
+        return _pretrain_members(settings, out, work, progress)
     low = [k for k in ('encoder_bf16', 'scene_nets_bf16') if getattr(settings, k)]
     tube_params = {k: True for k in ('outline', 'depth_test') if getattr(settings, k)}
     compiled = ['compile_renderer'] if settings.compile_renderer else []
@@ -173,7 +185,7 @@ def pretrain(settings: PretrainSettings, out, work, progress: bool = True) -> di
     ds = simulated_dataset(settings, work, progress)
     t0 = time.perf_counter()
     phases, res = train_in_phases(ds, cfg, settings.keypoint_steps,
-                                  Path(work) / f'{settings.arch}_keypoints', out=out,
+                                  Path(phase_dir or work) / f'{settings.arch}_keypoints', out=out,
                                   keypoint_scene_batch=settings.keypoint_scene_batch,
                                   progress=progress, desc='pretrain',
                                   reader_steps=settings.reader_steps,
@@ -191,3 +203,21 @@ def pretrain(settings: PretrainSettings, out, work, progress: bool = True) -> di
             'train_seconds': round(secs),
             'train_samples_per_s': round((seen + res.rows_seen) / secs, 1),
             'settings': asdict(settings)}
+
+
+def _pretrain_members(settings: PretrainSettings, out, work, progress: bool) -> dict:
+    """Train ``settings.members`` seeds one after the other, then write their ensemble."""
+    from softshape_ros.model.ensemble import ensemble
+    if settings.members < 1:
+        raise ValueError(f'members {settings.members}: at least one training')
+    if settings.arch != 'tube':
+        raise ValueError(f'members {settings.members}: ensembles average the tube model\'s '
+                         f'keypoints, not {settings.arch!r}\'s')
+    runs = []
+    for seed in range(settings.seed, settings.seed + settings.members):
+        folder = Path(work) / f'member_seed{seed}'
+        runs.append(pretrain(replace(settings, seed=seed, members=1), folder / 'checkpoint',
+                             work, progress, phase_dir=folder))
+    path = ensemble([r['checkpoint'] for r in runs], out)
+    return {'checkpoint': str(path), 'members': runs,
+            'train_seconds': sum(r['train_seconds'] for r in runs), 'settings': asdict(settings)}
