@@ -78,6 +78,10 @@ def test_checkpoint_reloads_bit_identically(trained, small_set):
                                                       small_set.pressure[:5])
     assert a.dtype == np.uint8 and a.shape == (5, 1, 1, 64, 64)
     assert np.array_equal(a, b)
+    # The weights are as readable as the config (the umask's mode): a node run by another
+    # user loads them (safetensors' own writer made them private, 0600).
+    modes = [(ckpt / f).stat().st_mode & 0o777 for f in ('model.safetensors', CONFIG)]
+    assert modes[0] == modes[1], [oct(m) for m in modes]
 
 
 def test_predictor_api_checks_inputs(trained, small_set):

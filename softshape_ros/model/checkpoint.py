@@ -15,7 +15,7 @@ from pathlib import Path
 
 import torch
 from safetensors import SafetensorError
-from safetensors.torch import load_file, save_file
+from safetensors.torch import load_file, save
 
 from softshape_ros.model.networks import ARCHS, build_network
 
@@ -54,7 +54,9 @@ def save_checkpoint(path, model: torch.nn.Module, config: dict) -> Path:
     d.mkdir(parents=True, exist_ok=True)
     weights = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
     tmp = d / (WEIGHTS + '.tmp')
-    save_file(weights, str(tmp), metadata={'format': FORMAT})
+    # Written by Python, not safetensors' save_file, whose files are private (0600): a
+    # checkpoint must be readable by the node's user as config.json is (the umask decides).
+    tmp.write_bytes(save(weights, metadata={'format': FORMAT}))
     os.replace(tmp, d / WEIGHTS)
     cfg = dict(config, format=FORMAT, version=VERSION, weights_file=WEIGHTS,
                weights_sha256=_sha256(d / WEIGHTS))
