@@ -25,7 +25,7 @@ help:
 	@echo "make demo   - set up, then run the whole pipeline on the simulated rig (see README)"
 	@echo "make test   - set up, then run the test suite"
 	@echo "make bench  - set up, then run the benchmarks (JSON on stdout)"
-	@echo "make pretrain - rebuild a checkpoint on simulation: ARGS=\"--arch tube --as-shipped\" the demo's models/tube_stereo_gray as shipped (ARGS=\"--arch tube\": the faster recipe since), ARGS=\"--sparse-share 0\" models/ours_stereo_gray"
+	@echo "make pretrain - rebuild a checkpoint on simulation: ARGS=\"--arch tube --as-shipped\" the demo's models/tube_stereo_gray as shipped (two trainings averaged; ARGS=\"--arch tube\": one of them), ARGS=\"--sparse-share 0\" models/ours_stereo_gray"
 	@echo "make clean  - remove build products (keeps .venv)"
 
 setup: build

@@ -719,6 +719,10 @@ def test_the_visibility_reads_the_scene_code_and_older_checkpoints_still_load(tm
     assert cfg['training']['steps'] == 2400             # "A longer full phase": shipped
     # "The full phase on more placements": shipped (5 % of them held out, 1000 rows).
     assert cfg['training']['val_fraction'] == 0.05 and cfg['dataset']['val'] == 1000
+    # "Trainings averaged": shipped, the recipe's seeds 0 and 1 (seed 0's renderer).
+    assert cfg['arch_params']['members'] == 2 and len(shipped.members) == 1
+    assert [m['seed'] for m in cfg['ensemble']] == [0, 1]
+    assert cfg['training']['fused_adam'] and cfg['training']['compile_renderer']
     # A checkpoint made before (no scene_visibility in its arch_params) gets the
     # pressure-only visibility it was trained with, and predicts as it did.
     legacy = build_network('tube', 2, 1).eval()
@@ -902,7 +906,9 @@ def _tube_checkpoint(path, seed: int, config: dict, views: int = 2):
 def test_trainings_averaged_draw_their_mean_keypoints_with_the_first_renderer(
         simulated, tmp_path, capsys):
     from softshape_ros.model.ensemble import ensemble
-    cfg = load_checkpoint(PRETRAINED)[1]
+    shipped = load_checkpoint(PRETRAINED)[1]        # itself an ensemble: one training's build
+    cfg = {k: v for k, v in shipped.items() if k != 'ensemble'}
+    cfg['arch_params'] = {k: v for k, v in shipped['arch_params'].items() if k != 'members'}
     (a_ck, a), (b_ck, b) = (_tube_checkpoint(tmp_path / f'm{s}', s, cfg) for s in (1, 2))
     out = ensemble([a_ck, b_ck], tmp_path / 'both')
     model, saved = load_checkpoint(out)

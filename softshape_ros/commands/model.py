@@ -269,13 +269,13 @@ def register(sub) -> None:
                    'float32 (how the shipped checkpoint was made)')
     p.add_argument('--compile-renderer', action=argparse.BooleanOptionalAction, default=None,
                    help=COMPILE_RENDERER_HELP + '; default on for tube, '
-                   '--no-compile-renderer: eager PyTorch (how the shipped checkpoint was made)')
+                   '--no-compile-renderer: eager PyTorch')
     p.add_argument('--fused-adam', action=argparse.BooleanOptionalAction, default=None,
-                   help=FUSED_ADAM_HELP + '; default on for tube, --no-fused-adam: the '
-                   'loop of the shipped checkpoint')
+                   help=FUSED_ADAM_HELP + '; default on for tube, --no-fused-adam: '
+                   'PyTorch\'s loop')
     p.add_argument('--as-shipped', action='store_true',
-                   help='tube: the settings models/tube_stereo_gray was made with (before '
-                        'the recipe\'s faster ones: ' + ', '.join(
+                   help='tube: the settings models/tube_stereo_gray was made with (the '
+                        'recipe\'s, and ' + ', '.join(
                             f'{k} {v}' for k, v in TUBE_AS_SHIPPED.items()
                             if TUBE.get(k) != v) + '); other flags still override them')
     p.add_argument('--quiet', action='store_true', help='no progress bars')
