@@ -929,6 +929,13 @@ def test_trainings_averaged_draw_their_mean_keypoints_with_the_first_renderer(
         want = a.render(mean, x, scene.background, cond, scene.objects)[0]
         assert torch.allclose(got.image, want, atol=1e-5)
         assert not torch.allclose(got.image, one.image, atol=1e-3)
+    # Its first training alone is the first checkpoint again (what the bench's steps train).
+    from softshape_ros.model.ensemble import first_training
+    alone, alone_cfg = first_training(out)
+    assert 'members' not in alone_cfg['arch_params'] and 'ensemble' not in alone_cfg
+    with torch.no_grad():
+        assert torch.equal(alone(x, p), a(x, p))
+    assert first_training(a_ck)[1] == load_checkpoint(a_ck)[1]
     # It predicts as any checkpoint does, one scene's actuations from its cached parts.
     pred = Predictor.from_checkpoint(out)
     rng = np.random.default_rng(0)

@@ -4,8 +4,8 @@ The whole pipeline on the simulated rig: record -> dataset -> train -> evaluate 
 Each stage is what a user would run: the rig nodes as separate processes (mock_hardware,
 recorder, collector; later mock_hardware + inference), and the ``softshape`` tools
 (build-dataset, train, evaluate). Training fine-tunes the shipped checkpoint pre-trained on
-simulation (the tube model ``models/tube_stereo_gray``, rebuilt by ``make pretrain
-ARGS="--arch tube"``) on the recorded bag, or trains ``ours``
+simulation (the tube model ``models/tube_stereo_gray``, two trainings averaged, rebuilt by
+``make pretrain ARGS="--arch tube --as-shipped"``) on the recorded bag, or trains ``ours``
 from scratch where there is none (``--pretrained ''``: the tube model needs a shape record
 that bags lack). A stage whose
 outputs exist for the same settings is reused, so a second ``make demo`` only redoes what

@@ -79,3 +79,21 @@ def ensemble(checkpoints, out) -> Path:
                            'seed': cfg.get('training', {}).get('seed')}
                           for p, (_, cfg) in zip(paths, loaded)]
     return save_checkpoint(out, model, config)
+
+
+def first_training(checkpoint):
+    """
+    Return (model, config) of ``checkpoint``'s first training alone (itself if not an ensemble).
+
+    What a member looks like to the recipe's phases (they train one): the same tensors but
+    the other members', the same config but ``members`` and the ``ensemble`` list.
+    """
+    model, cfg = load_checkpoint(checkpoint)
+    if not len(getattr(model, 'members', ())):
+        return model, cfg
+    params = {k: v for k, v in cfg['arch_params'].items() if k != 'members'}
+    one = build_network('tube', len(cfg['views']), cfg['channels'], **params)
+    one.load_state_dict({k: v for k, v in model.state_dict().items()
+                         if not k.startswith('members.')}, strict=True)
+    cfg = {k: v for k, v in cfg.items() if k != 'ensemble'}
+    return one.eval(), dict(cfg, arch_params=params)

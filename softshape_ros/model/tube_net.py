@@ -646,8 +646,10 @@ class TubeNet(nn.Module):
         if parts == 'keypoints':
             code, described = per_scene(self.keypoints.scene, image)
             kp, free, _ = self.keypoints(code, pressure)
-            members = per_scene(lambda i: (self._member_codes(i),), image)[0]
-            return (*self._mean_keypoints(kp, free, members, pressure), described)
+            if len(self.members):       # (one training: no second pass over the scenes)
+                members = per_scene(lambda i: (self._member_codes(i),), image)[0]
+                kp, free = self._mean_keypoints(kp, free, members, pressure)
+            return kp, free, described
         scene = self.scene_parts(image)
         kp, free, cond = self.keypoints(scene.code, pressure)
         kp, free = self._mean_keypoints(kp, free, scene.member_codes, pressure)
