@@ -894,7 +894,7 @@ def test_a_depth_test_model_learns_where_the_object_is(simulated, tmp_path):
 
 
 def _tube_checkpoint(path, seed: int, config: dict, views: int = 2):
-    """A tube network of the shipped recipe's build, its weights moved off the seeded start."""
+    """Save a tube network of the shipped recipe's build, moved off its seeded start."""
     torch.manual_seed(seed)
     net = build_network('tube', views, 1, **config['arch_params'])
     with torch.no_grad():

@@ -26,19 +26,12 @@ def ensemble(checkpoints, out) -> Path:
     """
     Write to ``out`` the ensemble of the tube ``checkpoints`` (at least two), the first drawing.
 
-    Args:
-        checkpoints: checkpoint folders (or either file in one), each one training of the
-            tube model; the first one's renderer draws.
-        out: the folder to write (a checkpoint any :class:`~softshape_ros.model.Predictor`
-            loads).
-
-    Returns:
-        The checkpoint folder written.
-
-    Raises:
-        CheckpointError: a member is unreadable, not tube, already an ensemble, or reads
-            other views, channels, image size, pressure maxima or keypoint count than the
-            first (the mismatch named).
+    ``checkpoints``: checkpoint folders (or either file in one), each one training of the
+    tube model; the first one's renderer draws. ``out``: the folder to write, a checkpoint
+    any :class:`~softshape_ros.model.Predictor` loads; returned. Raises
+    :class:`CheckpointError` where a member is unreadable, not tube, already an ensemble, or
+    reads other views, channels, image size, pressure maxima or keypoint count than the
+    first (the mismatch named).
     """
     paths = [checkpoint_dir(c) for c in checkpoints]
     if len(paths) < 2:

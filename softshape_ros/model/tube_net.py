@@ -590,7 +590,7 @@ class TubeNet(nn.Module):
         return torch.cat([m.scene(image)[0] for m in self.members], 1)
 
     def _mean_keypoints(self, kp, free, member_codes, pressure):
-        """The members' mean keypoints and free keypoints (B x V x K x 4 each)."""
+        """Return the members' mean keypoints and free keypoints (B x V x K x 4 each)."""
         if not len(self.members):
             return kp, free
         kps, frees = [kp], [free]
