@@ -266,7 +266,7 @@ def register(sub) -> None:
                    '--no-encoder-bf16: float32')
     p.add_argument('--scene-nets-bf16', action=argparse.BooleanOptionalAction, default=None,
                    help=SCENE_NETS_BF16_HELP + '; default on for tube, --no-scene-nets-bf16: '
-                   'float32 (how the shipped checkpoint was made)')
+                   'float32')
     p.add_argument('--compile-renderer', action=argparse.BooleanOptionalAction, default=None,
                    help=COMPILE_RENDERER_HELP + '; default on for tube, '
                    '--no-compile-renderer: eager PyTorch')
