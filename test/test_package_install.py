@@ -7,6 +7,7 @@ it to answer in the ROS graph, and checks that SIGINT ends it with exit code 0.
 """
 
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -79,7 +80,38 @@ def colcon_workspace(tmp_path_factory):
                             '--event-handlers', 'console_direct-'],
         cwd=base, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, f'colcon build failed:\n{proc.stdout}\n{proc.stderr}'
+    share_compiled_kernels(base / 'install')
     return base
+
+
+def share_compiled_kernels(install: Path) -> int:
+    """
+    Give the installed modules the simulator kernels numba compiled for the source tree.
+
+    What `python -m softshape_ros.sim.warmup` does once on a host (the README's Jazzy
+    steps), done here by copying: `make build` compiled them beside the sources, and the
+    install's fresh copy would otherwise compile them again in the first process that
+    simulates (30-45 s of the mock hardware node's start). numba's index keys on its
+    source's mtime and size, and the build copies a source's mtime in whole seconds, so the
+    copy gets the exact one. Returns how many modules got a cache.
+    """
+    site = next((install / PKG).glob('lib/python3*/site-packages')) / PKG
+    shared = 0
+    for cache in sorted({p.parent for p in (ROOT / PKG).rglob('__pycache__/*.nbi')}):
+        source_dir = cache.parent
+        installed_dir = site / source_dir.relative_to(ROOT / PKG)
+        for nbi in cache.glob('*.nbi'):
+            module = nbi.name.split('.', 1)[0] + '.py'
+            source, installed = source_dir / module, installed_dir / module
+            if not installed.is_file() or installed.read_bytes() != source.read_bytes():
+                continue
+            st = source.stat()
+            os.utime(installed, ns=(st.st_atime_ns, st.st_mtime_ns))
+        (installed_dir / '__pycache__').mkdir(exist_ok=True)
+        for f in list(cache.glob('*.nbi')) + list(cache.glob('*.nbc')):
+            shutil.copy2(f, installed_dir / '__pycache__' / f.name)
+        shared += 1
+    return shared
 
 
 @pytest.fixture(scope='session')
