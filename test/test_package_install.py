@@ -84,7 +84,7 @@ def colcon_workspace(tmp_path_factory):
     return base
 
 
-def share_compiled_kernels(install: Path) -> int:
+def share_compiled_kernels(install: Path) -> None:
     """
     Give the installed modules the simulator kernels numba compiled for the source tree.
 
@@ -93,25 +93,21 @@ def share_compiled_kernels(install: Path) -> int:
     install's fresh copy would otherwise compile them again in the first process that
     simulates (30-45 s of the mock hardware node's start). numba's index keys on its
     source's mtime and size, and the build copies a source's mtime in whole seconds, so the
-    copy gets the exact one. Returns how many modules got a cache.
+    copy gets the exact one. A module whose installed copy differs keeps no cache.
     """
     site = next((install / PKG).glob('lib/python3*/site-packages')) / PKG
-    shared = 0
-    for cache in sorted({p.parent for p in (ROOT / PKG).rglob('__pycache__/*.nbi')}):
-        source_dir = cache.parent
-        installed_dir = site / source_dir.relative_to(ROOT / PKG)
-        for nbi in cache.glob('*.nbi'):
-            module = nbi.name.split('.', 1)[0] + '.py'
-            source, installed = source_dir / module, installed_dir / module
-            if not installed.is_file() or installed.read_bytes() != source.read_bytes():
-                continue
-            st = source.stat()
-            os.utime(installed, ns=(st.st_atime_ns, st.st_mtime_ns))
-        (installed_dir / '__pycache__').mkdir(exist_ok=True)
-        for f in list(cache.glob('*.nbi')) + list(cache.glob('*.nbc')):
-            shutil.copy2(f, installed_dir / '__pycache__' / f.name)
-        shared += 1
-    return shared
+    for nbi in (ROOT / PKG).rglob('__pycache__/*.nbi'):
+        module = nbi.name.split('.', 1)[0]
+        source = nbi.parent.parent / f'{module}.py'
+        installed = site / source.relative_to(ROOT / PKG)
+        if not installed.is_file() or installed.read_bytes() != source.read_bytes():
+            continue
+        st = source.stat()
+        os.utime(installed, ns=(st.st_atime_ns, st.st_mtime_ns))
+        cache = installed.parent / '__pycache__'
+        cache.mkdir(exist_ok=True)
+        for f in nbi.parent.glob(nbi.name[:-len('.nbi')] + '*'):    # the index, its code
+            shutil.copy2(f, cache / f.name)
 
 
 @pytest.fixture(scope='session')
