@@ -494,9 +494,10 @@ def test_the_compiled_renderer_draws_the_same_field_in_steps_alone(simulated, mo
     from softshape_ros.model import tube_net
     from softshape_ros.model.tube_net import compiled_renderer, draw_field
     gen = torch.Generator().manual_seed(7)
-    kp = torch.rand(3, 2, KEYPOINTS, 4, generator=gen) * torch.tensor([40.0, 40.0, 3.0, 6.0])
+    # 16 rows of one view: what the training below draws (one compilation for both)
+    kp = torch.rand(16, 1, KEYPOINTS, 4, generator=gen) * torch.tensor([40.0, 40.0, 3.0, 6.0])
     kp += torch.tensor([12.0, 12.0, 2.0, 0.0])
-    weights = torch.randn(6, 3, 2, 64 * 64, generator=gen)
+    weights = torch.randn(6, 16, 1, 64 * 64, generator=gen)
     built, compiled_field = [], tube_net._compiled_field
 
     def spy():
@@ -514,7 +515,12 @@ def test_the_compiled_renderer_draws_the_same_field_in_steps_alone(simulated, mo
 
     plain = drawn(False)
     assert not built
-    fused = drawn(True)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)    # as training below: its steps reuse this compilation
+    try:
+        fused = drawn(True)
+    finally:
+        torch.set_num_threads(threads)
     assert built                                                # the compiled path drew it
     for a, b in zip(plain, fused):                              # six maps, the gradient
         torch.testing.assert_close(b, a, rtol=1e-4, atol=1e-4)
@@ -633,7 +639,7 @@ def test_short_tube_training_beats_copy_on_touching_samples(simulated, tmp_path)
     from softshape_ros.model.metrics import evaluate_arrays
     ds = load_dataset(simulated.path)
     cfg = TrainConfig(arch='tube', batch_size=16, max_steps=200, eval_every=40, patience=100,
-                      seed=0, threads=1, split='scene', arch_params={'outline': True})
+                      seed=0, threads=2, split='scene', arch_params={'outline': True})
     res = train(ds, cfg, out=tmp_path / 'ck', progress=False)
     val = np.asarray(res.config['dataset']['val_rows'])
     touching = np.asarray(ds.contact.touching)
@@ -872,7 +878,7 @@ def test_a_depth_test_model_learns_where_the_object_is(simulated, tmp_path):
     from softshape_ros.experiments.object_depths import object_depths
     ds = load_dataset(simulated.path)
     cfg = TrainConfig(arch='tube', batch_size=16, max_steps=120, eval_every=40, patience=100,
-                      seed=0, threads=1, split='scene', arch_params={'depth_test': True})
+                      seed=0, threads=2, split='scene', arch_params={'depth_test': True})
     res = train(ds, cfg, out=tmp_path / 'ck', progress=False, object_depths=object_depths)
     model, saved = load_checkpoint(tmp_path / 'ck')
     assert saved['arch_params']['depth_test'] is True and model.depth_test
