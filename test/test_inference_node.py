@@ -106,11 +106,13 @@ def test_predictions_equal_offline_model_and_bad_input_publishes_nothing(rig, tr
     ros.wait_for(lambda: all(rest_ns in probe.camera[v] for v in ('main', 'side')),
                  what='the probe to see the rest frames too')
     # Diagnostics name the scene the initial images are of (a client tells a stale
-    # 'waiting' from before the scene from one after it).
+    # 'waiting' from before the scene from one after it), and the cameras matched to each
+    # view's reader (the mock rig's, one a view: a client snaps rest images once it is).
     from softshape_ros.nodes.diagnostics import DiagnosticStatusWrapper
     stat = node.report(DiagnosticStatusWrapper())
     assert stat.message == 'predicting'
-    assert {kv.key: kv.value for kv in stat.values}['scene'] == '7'
+    values = {kv.key: kv.value for kv in stat.values}
+    assert values['scene'] == '7' and values['camera_publishers'] == '1', values
 
     # Bad requests: wrong length, NaN, beyond limits -> nothing published, node stays up.
     before = node.counts['rejected']

@@ -168,15 +168,17 @@ class RigClient(Participant):
         zeros = np.zeros(6)
         self.pub_scene.publish(String(data=json.dumps(scene)))
         self.pub_command.publish(Float64MultiArray(data=zeros.tolist()))
-        # Inference also says 'waiting' before any scene: wait for it to name this one.
+        # Inference also says 'waiting' before any scene: wait for it to name this one, with
+        # every camera matched to its reader (frames are volatile: a snap before that is lost
+        # to it).
         sid = str(scene['id'])
-        wait_until(lambda: 'waiting' in self.inference_state and self.inference_scene == sid,
+        wait_until(lambda: 'waiting' in self.inference_state and self.inference_scene == sid
+                   and int(self.inference_values.get('camera_publishers', 0)) >= 1,
                    30.0, what=f'inference to take scene {sid}', processes=procs)
         self._settle(zeros, procs)
         time.sleep(0.2)
-        # A rest snap right after start-up can reach us and not inference (the camera's
-        # writer may not have matched inference's reader yet; volatile frames are not
-        # resent): snap again until inference has its rest images, as a user would.
+        # The match is seen from inference's reader; the camera's writer may match it a
+        # moment later: snap again until inference has its rest images, as a user would.
         for attempt in range(REST_ATTEMPTS):
             stamp = self._snap(procs, 'rest', scene['id'], zeros)
             try:

@@ -77,9 +77,9 @@ class InferenceNode(Node):
         self.seen_samples = False
         self.awaiting_rest = False
         self.scene_id: int | None = None
-        for v in self.core.views:
-            self.create_subscription(Image, t.camera('camera_image', v),
-                                     lambda msg, v=v: self.on_image(v, msg), image_qos)
+        self.camera_subs = [self.create_subscription(
+            Image, t.camera('camera_image', v), lambda msg, v=v: self.on_image(v, msg), image_qos)
+            for v in self.core.views]
         self.create_subscription(String, t.scene, self.on_scene, LATCHED_QOS)
         self.create_subscription(String, t.sample, self.on_sample, RELIABLE_QOS)
         self.create_subscription(Float64MultiArray, t.pressure_command,
@@ -223,9 +223,12 @@ class InferenceNode(Node):
             level, message = WARN, 'waiting for initial images'
         if not self.worker.is_alive():
             level, message = ERROR, 'inference worker died'
-        # 'scene': the placement its initial images are (to be) of; '' before any /rig/scene
+        # 'scene': the placement its initial images are (to be) of; '' before any /rig/scene.
+        # 'camera_publishers': the fewest cameras matched on any view's image topic; a rest
+        # snap taken before it is 1 reaches the camera's other readers but not this one.
         values = dict(self.counts, superseded=self.slot.superseded,
                       scene='' if self.scene_id is None else str(self.scene_id),
+                      camera_publishers=min(s.get_publisher_count() for s in self.camera_subs),
                       latency_ms_median=f'{np.median(lat):.2f}',
                       latency_ms_p99=f'{np.percentile(lat, 99):.2f}', last_error=self.last_error)
         return fill(stat, level, message, values)
