@@ -403,6 +403,10 @@ def test_validation_encodes_each_placement_once(simulated, monkeypatch):
     assert seen[-1] == distinct
 
 
+# The short training _in_training_steps_alone runs: its batch and threads.
+STEPS_ALONE_BATCH, STEPS_ALONE_THREADS = 16, 1
+
+
 def _in_training_steps_alone(simulated, monkeypatch, owner, name: str, context, flag: str,
                              **config) -> None:
     """
@@ -419,8 +423,9 @@ def _in_training_steps_alone(simulated, monkeypatch, owner, name: str, context, 
 
     monkeypatch.setattr(owner, name, spy)
     ds = load_dataset(simulated.path)
-    cfg = TrainConfig(arch='tube', max_steps=4, eval_every=2, patience=100, seed=0, threads=1,
-                      split='scene', batch_size=16, **{flag: True}, **config)
+    cfg = TrainConfig(arch='tube', max_steps=4, eval_every=2, patience=100, seed=0,
+                      threads=STEPS_ALONE_THREADS, split='scene', batch_size=STEPS_ALONE_BATCH,
+                      **{flag: True}, **config)
     res = train(ds, cfg, progress=False)
     assert {on for grad, on in seen if grad} == {True}         # every step within it
     assert {on for grad, on in seen if not grad} == {False}    # every validation not
@@ -494,10 +499,11 @@ def test_the_compiled_renderer_draws_the_same_field_in_steps_alone(simulated, mo
     from softshape_ros.model import tube_net
     from softshape_ros.model.tube_net import compiled_renderer, draw_field
     gen = torch.Generator().manual_seed(7)
-    # 16 rows of one view: what the training below draws (one compilation for both)
-    kp = torch.rand(16, 1, KEYPOINTS, 4, generator=gen) * torch.tensor([40.0, 40.0, 3.0, 6.0])
+    # The batch and views the training below draws (one compilation for both)
+    b, v = STEPS_ALONE_BATCH, len(load_dataset(simulated.path).views)
+    kp = torch.rand(b, v, KEYPOINTS, 4, generator=gen) * torch.tensor([40.0, 40.0, 3.0, 6.0])
     kp += torch.tensor([12.0, 12.0, 2.0, 0.0])
-    weights = torch.randn(6, 16, 1, 64 * 64, generator=gen)
+    weights = torch.randn(6, b, v, 64 * 64, generator=gen)
     built, compiled_field = [], tube_net._compiled_field
 
     def spy():
@@ -516,7 +522,7 @@ def test_the_compiled_renderer_draws_the_same_field_in_steps_alone(simulated, mo
     plain = drawn(False)
     assert not built
     threads = torch.get_num_threads()
-    torch.set_num_threads(1)    # as training below: its steps reuse this compilation
+    torch.set_num_threads(STEPS_ALONE_THREADS)  # as training below: it reuses this compilation
     try:
         fused = drawn(True)
     finally:
