@@ -117,15 +117,40 @@ def scene_vector(scene: Scene) -> list[float]:
 
     Kind one-hot, position and dimensions in mm, roll and pitch, yaw as sin/cos of twice
     it (rings and prisms look the same turned by half a turn; round objects get 0), every
-    angle and the one-hot x 5 so that each is weighed like a few millimetres.
+    angle and the one-hot x 5 so that each is weighed like a few millimetres; sizes in the
+    sorted order of their names.
     """
     kind = [_UNIT * (scene.object == k) for k in OBJECT_DIMS]
     roll, pitch, yaw = scene.rpy_rad
     turn = [0.0, 0.0] if scene.object in _ROUND else [_UNIT * math.sin(2 * yaw),
                                                       _UNIT * math.cos(2 * yaw)]
-    dims = [v * (1000.0 if k.endswith('_m') else _UNIT) for k, v in scene.dims.items()]
+    # Sizes in their names' sorted order, whatever order the scene lists them in: the order
+    # of Scene.to_json, which every simulated dataset's placements came through (a session
+    # YAML's order used to slip in for recorded bags).
+    dims = [scene.dims[k] * (1000.0 if k.endswith('_m') else _UNIT) for k in sorted(scene.dims)]
     return (kind + [1000.0 * v for v in scene.position_m] + [_UNIT * roll, _UNIT * pitch]
             + turn + dims + [0.0] * (4 - len(dims)))
+
+
+def scene_from_vector(vec, scene_id: int = 0, min_size_m: float = 5e-4) -> Scene:
+    """
+    The placement :data:`SCENE_FEATURES` numbers describe (the inverse of :func:`scene_vector`).
+
+    For a reader's description: the kind with the largest one-hot, sizes at least
+    ``min_size_m``; of yaw only its half-turn class is seen, so it comes back within
+    +-90 degrees (``sim.placement_fit.twin`` gives a prism's other description).
+    """
+    v = [float(x) for x in vec]
+    kinds = list(OBJECT_DIMS)
+    kind = kinds[int(np.argmax(v[:len(kinds)]))]
+    n = len(kinds)
+    pos = tuple(x / 1000.0 for x in v[n:n + 3])
+    roll, pitch = v[n + 3] / _UNIT, v[n + 4] / _UNIT
+    yaw = 0.0 if kind in _ROUND else 0.5 * math.atan2(v[n + 5], v[n + 6])
+    dims = {k: (max(x / 1000.0, min_size_m) if k.endswith('_m') else x / _UNIT)
+            for k, x in zip(sorted(OBJECT_DIMS[kind]), v[n + 7:])}
+    return Scene(id=scene_id, object=kind, position_m=pos, rpy_rad=(roll, pitch, yaw),
+                 dims=dims, label='read')
 
 
 def scene_targets(ds, idx):
