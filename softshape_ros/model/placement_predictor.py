@@ -1,0 +1,94 @@
+"""
+The placement path as a predictor: read the placement, fit it, predict the shape, draw it.
+
+Per rest image set (once, cached): the tube model's scene description gives a reading,
+``sim.placement_fit`` fits it to the rest images (a few seconds). Per actuation: the
+placement head (``model.placement_head``) predicts the keypoints, which the tube model
+draws over its own background, object and visibility. Same inputs and outputs as
+:class:`~softshape_ros.model.predictor.Predictor`, so the inference node serves it as it
+serves a checkpoint (its ``placement_head`` parameter).
+
+Simulated rig only as it stands: the fit reads images with the simulator's renderer.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections import OrderedDict
+
+import numpy as np
+import torch
+
+from softshape_ros.config import RigConfig
+from softshape_ros.model.checkpoint import load_checkpoint
+from softshape_ros.model.data import scene_from_vector
+from softshape_ros.model.placement_head import PlacementHeadError, ShapePredictor
+from softshape_ros.model.predictor import Predictor
+from softshape_ros.scene import Scene
+
+CACHED_PLACEMENTS = 8
+
+
+class PlacementPredictor(Predictor):
+    """A tube checkpoint drawing what a placement head predicts for the fitted placement."""
+
+    def __init__(self, model, config: dict, shape: ShapePredictor, cfg: RigConfig):
+        super().__init__(model, config)
+        if not hasattr(model, 'keypoints'):
+            raise PlacementHeadError(f'the placement path draws with a tube model, not '
+                                     f'{config.get("arch")!r}')
+        if list(shape.projection.views) != self.views or shape.projection.size != \
+                self.image_size or self.channels != 1:
+            raise PlacementHeadError(
+                f'the placement head draws views {shape.projection.views} at '
+                f'{shape.projection.size} px gray; the checkpoint has {self.views} at '
+                f'{self.image_size} px, {self.channels} channel(s)')
+        from softshape_ros.sim.placement_fit import PlacementFit
+        self.shape = shape
+        self.fit = PlacementFit(cfg, self.views, self.image_size)
+        self._placements: OrderedDict[bytes, Scene] = OrderedDict()
+
+    @classmethod
+    def from_paths(cls, checkpoint, head, cfg: RigConfig) -> 'PlacementPredictor':
+        """Load a tube checkpoint and a placement head for rig ``cfg`` (errors name the file)."""
+        model, config = load_checkpoint(checkpoint)
+        return cls(model, config, ShapePredictor.load(head, cfg), cfg)
+
+    @torch.inference_mode()
+    def placement(self, initial: np.ndarray) -> Scene:
+        """V x C x S x S uint8 rest images -> the fitted placement (cached per image set)."""
+        imgs = self._images(initial, batch=False)
+        key = hashlib.sha1(imgs.tobytes()).digest()
+        if key in self._placements:
+            self._placements.move_to_end(key)
+            return self._placements[key]
+        v, c, s, _ = imgs.shape
+        x = torch.from_numpy(imgs.reshape(1, v * c, s, s).astype(np.float32) / 255)
+        p = torch.zeros(1, len(self.max_pressure_pa))
+        described = self.model(x, p, parts='keypoints')[2]
+        if described is None:
+            raise PlacementHeadError('the checkpoint does not describe placements (trained '
+                                     'without the scene loss): nothing to start the fit from')
+        scene = self.fit.fit(imgs, scene_from_vector(described[0].numpy())).scene
+        self._placements[key] = scene
+        if len(self._placements) > CACHED_PLACEMENTS:
+            self._placements.popitem(last=False)
+        return scene
+
+    @torch.inference_mode()
+    def predict_batch(self, initial_b, pressures_b) -> np.ndarray:
+        """B x V x C x S x S uint8 + B x 6 Pa -> B x V x C x S x S uint8."""
+        imgs = self._images(initial_b, batch=True)
+        plist = list(pressures_b)
+        if len(plist) != imgs.shape[0]:
+            raise ValueError(f'{imgs.shape[0]} image sets but {len(plist)} pressure vectors')
+        if not plist:
+            return np.zeros((0,) + self.image_shape, np.uint8)
+        p = np.stack([self._pressures(q) for q in plist])                 # B x 6, in [0, 1]
+        scenes = [self.placement(i) for i in imgs]
+        kp = self.shape.keypoints(scenes, p * self.max_pressure_pa)      # B x V x K x 4
+        b, v, c, s, _ = imgs.shape
+        x = torch.from_numpy(imgs.reshape(b, v * c, s, s).astype(np.float32) / 255)
+        y = self.model(x, torch.from_numpy(p.astype(np.float32)), truth=kp, parts=True).teacher
+        out = torch.clamp(y * 255 + 0.5, 0, 255).to(torch.uint8).numpy()
+        return out.reshape(b, v, c, s, s)

@@ -1,0 +1,200 @@
+"""
+Read a placement from its rest images by rendering it and comparing (render-and-compare).
+
+A learned reader reads the object's position to about 0.5 mm; the rest images hold it to
+about 0.1 mm (docs/model.md, "The placement read by fitting the simulator's own
+rendering"). This fit starts from a reading (the tube model's, or a person's) and moves
+the placement until the simulator's rendering of the rest scene matches both rest images
+best (Nelder-Mead on the mean squared gray-level error, supersampled as the dataset is).
+
+Simulation only as it stands: it reads images with the renderer that drew them. On the
+real rig it needs a rendering matched to the cameras (docs/model.md).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.optimize import minimize
+
+from softshape_ros.config import RigConfig
+from softshape_ros.scene import Scene, SceneError
+from softshape_ros.sim.objects import obstacle_from_scene
+from softshape_ros.sim.render import render_view
+from softshape_ros.sim.rig import SimRig
+
+GOOD_MSE = 0.05         # gray levels^2: the truth scores 0.02-0.03 against uint8 images
+MIN_STARTS, MAX_STARTS = 2, 6
+START_SPREAD = 1.0      # mm (and 0.1 rad) around the reading for the restarts
+SCALES = (1.0, 0.5, 0.25, 0.1)      # Nelder-Mead simplex sizes, one run each
+MAX_EVALS = 1500        # per run
+SCREEN_EVALS = 300      # a short first run from each of several readings, best first
+
+
+class FitError(ValueError):
+    """The fit cannot read this placement (no object, or an object it does not know)."""
+
+
+def placement_params(scene: Scene) -> np.ndarray:
+    """
+    A placement as the fit moves it: position and sizes in mm, angles in 0.1 rad.
+
+    Position, the kind's sizes, then roll, pitch and (for rings and prisms, whose yaw is
+    seen) yaw: a reader reads the tilt too, a few hundredths of a radian off, and a ring
+    tilted that much is a different image (test_placement).
+    """
+    p, d = np.asarray(scene.position_m) * 1e3, scene.dims
+    roll, pitch, yaw = (10 * v for v in scene.rpy_rad)
+    if scene.object == 'cylinder':
+        return np.r_[p, d['radius_m'] * 1e3, d['height_m'] * 1e3, roll, pitch]
+    if scene.object == 'ring':
+        return np.r_[p, d['major_radius_m'] * 1e3, d['minor_radius_m'] * 1e3, roll, pitch, yaw]
+    if scene.object == 'prism':
+        return np.r_[p, d['width_m'] * 1e3, d['depth_m'] * 1e3, d['height_m'] * 1e3,
+                     d['skew_rad'] * 10, roll, pitch, yaw]
+    raise FitError(f'the placement fit reads cylinders, rings and prisms, not {scene.object!r}')
+
+
+def placement_scene(template: Scene, params) -> Scene:
+    """The inverse of :func:`placement_params` (kind, id, a cylinder's yaw from ``template``)."""
+    t = np.asarray(params, dtype=float)
+    pos = tuple(float(v) for v in t[:3] * 1e-3)
+    yaw = template.rpy_rad[2]
+    if template.object == 'cylinder':
+        dims, (roll, pitch) = {'radius_m': t[3] * 1e-3, 'height_m': t[4] * 1e-3}, t[5:7] / 10
+    elif template.object == 'ring':
+        dims = {'major_radius_m': t[3] * 1e-3, 'minor_radius_m': t[4] * 1e-3}
+        roll, pitch, yaw = t[5:8] / 10
+    else:
+        dims = {'width_m': t[3] * 1e-3, 'depth_m': t[4] * 1e-3, 'height_m': t[5] * 1e-3,
+                'skew_rad': t[6] / 10}
+        roll, pitch, yaw = t[7:10] / 10
+    return replace(template, position_m=pos, rpy_rad=(float(roll), float(pitch), float(yaw)),
+                   dims={k: float(v) for k, v in dims.items()})
+
+
+def twin(scene: Scene) -> Scene:
+    """The same prism described the other way round (yaw + pi, skew negated)."""
+    d = dict(scene.dims, skew_rad=-scene.dims['skew_rad'])
+    r, p, y = scene.rpy_rad
+    return replace(scene, rpy_rad=(r, p, math.remainder(y + math.pi, 2 * math.pi)), dims=d)
+
+
+def quarter(scene: Scene) -> Scene:
+    """A prism turned a quarter with width and depth swapped: the same box, skew aside."""
+    d = dict(scene.dims, width_m=scene.dims['depth_m'], depth_m=scene.dims['width_m'])
+    r, p, y = scene.rpy_rad
+    return replace(scene, rpy_rad=(r, p, math.remainder(y + math.pi / 2, 2 * math.pi)), dims=d)
+
+
+def flipped(scene: Scene) -> Scene:
+    """A prism leaning the other way (skew negated, nothing else)."""
+    return replace(scene, dims=dict(scene.dims, skew_rad=-scene.dims['skew_rad']))
+
+
+def readings(scene: Scene) -> list[Scene]:
+    """
+    A reading and the prisms a reader may have confused it with (eight).
+
+    A reader sees yaw only up to a half turn, so the lean's sign it reads belongs to either
+    yaw; and a box turned a quarter is the same box with width and depth swapped.
+    """
+    if scene.object != 'prism':
+        return [scene]
+    out = []
+    for a in (scene, quarter(scene)):
+        out += [a, flipped(a), twin(a), twin(flipped(a))]
+    return out
+
+
+@dataclass(frozen=True)
+class FitResult:
+    scene: Scene
+    mse: float              # gray levels^2 against the rest images
+    evaluations: int
+    starts: int
+
+
+class PlacementFit:
+    """Renders rest scenes of one rig and fits placements to rest images."""
+
+    def __init__(self, cfg: RigConfig, views, size: int = 64, supersample: int = 3):
+        self.rig = SimRig(cfg)
+        self.views, self.size, self.ss = list(views), int(size), int(supersample)
+        self.rig.set_scene(None)
+        self.rest = self.rig.solve([0.0] * len(cfg.chambers))
+        self.grids = []
+        for v in self.views:
+            cam = self.rig.cameras[v]
+            self.grids.append((cam, cam.grid(cam.crop, (self.size * self.ss,) * 2)))
+
+    def render(self, scene: Scene) -> np.ndarray:
+        """The rest scene as (V, S, S) float gray levels (supersampled, area-averaged)."""
+        obstacles = [obstacle_from_scene(scene)]
+        s, k = self.size, self.ss
+        return np.stack([render_view(cam, self.rest.backbone_m, self.rest.radii_m, obstacles,
+                                     grid, gray=True).astype(np.float32)
+                         .reshape(s, k, s, k).mean(axis=(1, 3)) for cam, grid in self.grids])
+
+    def mse(self, scene: Scene, images) -> float:
+        """Mean squared gray-level error of ``scene``'s rendering against rest images."""
+        return float(((self.render(scene) - self._images(images)) ** 2).mean())
+
+    def _images(self, images) -> np.ndarray:
+        """V x S x S or V x 1 x S x S gray levels -> V x S x S float32; ValueError if not."""
+        img = np.asarray(images, dtype=np.float32)
+        want = (len(self.views), self.size, self.size)
+        if img.size != np.prod(want) or img.shape[0] != want[0] or img.shape[-2:] != want[1:]:
+            raise ValueError(f'rest images must be {want} gray (or V x 1 x S x S), got '
+                             f'{img.shape}')
+        return img.reshape(want)
+
+    def fit(self, images, reading: Scene, seed: int = 0) -> FitResult:
+        """
+        Fit the placement to rest images (V x S x S, or V x 1 x S x S, gray levels).
+
+        ``reading``: where the object is thought to be (kind, and a first guess within
+        a millimetre or two). Restarts around it until two are done and the match is
+        good (GOOD_MSE), six at most; a prism first from the best of its eight
+        :func:`readings` after a short run from each (a reader may read its half turn,
+        lean or width for depth wrong).
+        """
+        img = self._images(images)
+        x_read = placement_params(reading)
+        rng = np.random.default_rng(seed)
+        evals = [0]
+
+        def cost(t):
+            evals[0] += 1
+            try:
+                return float(((self.render(placement_scene(reading, t)) - img) ** 2).mean())
+            except (SceneError, ValueError):
+                return 1e9                      # impossible sizes: far from any match
+
+        firsts = [placement_params(r) for r in readings(reading)]
+        if len(firsts) > 1:                 # screen them: a short run each, best first
+            screened = [self._run(cost, x, SCALES[0], SCREEN_EVALS) for x in firsts]
+            firsts = [x for x, _ in sorted(screened, key=lambda r: r[1])]
+        best_x, best_f, starts = x_read, cost(x_read), 0
+        while starts < MAX_STARTS and (starts < MIN_STARTS or best_f >= GOOD_MSE):
+            x = firsts[starts] if starts < len(firsts) else \
+                x_read + rng.normal(0.0, START_SPREAD, x_read.shape)
+            fx = cost(x)
+            for scale in SCALES:
+                xs, fs = self._run(cost, x, scale, MAX_EVALS)
+                if fs < fx:
+                    x, fx = xs, fs
+            starts += 1
+            if fx < best_f:
+                best_x, best_f = x, fx
+        return FitResult(placement_scene(reading, best_x), best_f, evals[0], starts)
+
+    @staticmethod
+    def _run(cost, x, scale: float, evals: int) -> tuple[np.ndarray, float]:
+        """One Nelder-Mead run from ``x`` with a simplex of ``scale``: (best x, its cost)."""
+        simplex = np.vstack([x, x + np.diag(np.full(len(x), scale))])
+        r = minimize(cost, x, method='Nelder-Mead', options={
+            'xatol': 1e-3, 'fatol': 1e-7, 'maxfev': evals, 'initial_simplex': simplex})
+        return r.x, float(r.fun)

@@ -1,0 +1,197 @@
+"""The placement path: reading a placement back (description, fit) and the folded head."""
+
+import json
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from softshape_ros.config import load_rig_config
+from softshape_ros.data import load_dataset
+from softshape_ros.model.data import placements, scene_from_vector, scene_vector, shape_tensors
+from softshape_ros.model.placement_head import (
+    PlacementHeadError, ShapePredictor, ShapeProjection, folded_inputs, train_shape_predictor)
+from softshape_ros.scene import Scene
+from softshape_ros.sim.generate import generate, make_plan
+from softshape_ros.sim.placement_fit import (
+    FitError, PlacementFit, placement_params, placement_scene, twin)
+from softshape_ros.sim.symmetry import RigSymmetry
+
+CFG = load_rig_config()
+VIEWS = ['main', 'side']
+
+
+@pytest.fixture(scope='module')
+def stereo(tmp_path_factory):
+    """320 stereo samples of the default contact-rich distribution over 64 placements."""
+    ds, _ = generate(CFG, make_plan(CFG, 320, 64, seed=9), tmp_path_factory.mktemp('p') / 'ds',
+                     VIEWS, workers=2, progress=False)
+    return load_dataset(ds.path)
+
+
+def test_a_description_reads_back_as_its_placement_whatever_order_the_sizes_came_in():
+    prism = Scene(3, 'prism', (0.02, -0.01, 0.03), (0.0, 0.0, 0.4),
+                  {'width_m': 0.012, 'depth_m': 0.009, 'height_m': 0.05, 'skew_rad': 0.2})
+    shuffled = replace(prism, dims=dict(reversed(list(prism.dims.items()))))
+    assert scene_vector(shuffled) == scene_vector(prism)
+    back = scene_from_vector(scene_vector(prism), 3)
+    assert back.object == 'prism' and back.dims == pytest.approx(prism.dims)
+    assert back.position_m == pytest.approx(prism.position_m)
+    assert back.rpy_rad[2] == pytest.approx(0.4)
+    # Yaw is seen only up to a half turn: a prism turned by pi reads back as its twin.
+    turned = scene_from_vector(scene_vector(replace(prism, rpy_rad=(0, 0, 0.4 + math.pi))))
+    assert turned.rpy_rad[2] == pytest.approx(0.4)
+    assert twin(twin(prism)).dims == pytest.approx(prism.dims)
+    # A reader's nonsense sizes come back small but valid.
+    vec = scene_vector(prism)
+    vec[-4:] = [-3.0, 0.0, 40.0, 1.0]
+    assert min(scene_from_vector(vec).dims.values()) > 0
+
+
+@pytest.mark.parametrize('row', [0, 2])            # a cylinder, a prism
+def test_the_fit_reads_a_placement_to_a_fraction_of_a_millimetre(stereo, row):
+    scenes = placements(stereo, np.arange(len(stereo)))
+    sid = int(np.unique(np.asarray(stereo.scene))[row])
+    truth = scenes[sid]
+    image = stereo.initial[int(np.nonzero(np.asarray(stereo.scene) == sid)[0][0])]
+    fit = PlacementFit(CFG, VIEWS)
+    # A reading 1.5 mm off in x and y, 1 mm in z; a prism also described the other way round.
+    start = placement_params(truth)
+    start[:3] += [1.5, -1.5, 1.0]
+    reading = placement_scene(truth, start)
+    if truth.object == 'prism':
+        reading = twin(reading)
+    r = fit.fit(image, reading)
+    err = np.abs(np.subtract(r.scene.position_m, truth.position_m)) * 1e3
+    assert r.mse < 0.1 and r.mse <= fit.mse(reading, np.asarray(image, np.float32)) / 10
+    assert err[:2].max() < 0.2, err            # x, y: the main camera's plane and depth
+    assert err[2] < 0.5, err                   # height: an object's end may leave the frame
+    with pytest.raises(FitError, match='sphere'):
+        fit.fit(image, Scene(0, 'sphere', truth.position_m, (0, 0, 0), {'radius_m': 0.01}))
+
+
+def test_the_projection_goes_from_the_record_to_the_backbone_and_back(stereo):
+    record, _ = shape_tensors(stereo, np.arange(len(stereo)))
+    proj = ShapeProjection(CFG, VIEWS, 64)
+    pts, radius = proj.backbone(record.numpy())
+    assert np.ptp(radius) < 1e-5                                  # one tube radius
+    back = proj.record(pts, radius.mean(0))
+    np.testing.assert_allclose(back[..., :2], record[..., :2], atol=1e-3)   # px
+    np.testing.assert_allclose(back[..., 2:], record[..., 2:], atol=2e-3)
+    # The side view comes from the main view's points: the 3D backbone is right.
+    assert float(np.abs(back[:, 1] - record.numpy()[:, 1]).max()) < 2e-3
+
+
+@pytest.fixture(scope='module')
+def head48(stereo):
+    """A placement head learnt from the first 48 of the 64 placements (500 steps)."""
+    ids = np.asarray(stereo.scene)
+    seen = np.isin(ids, np.unique(ids)[:48])
+    head, report = train_shape_predictor(stereo, CFG, VIEWS, steps=500, batch=128,
+                                         rows=np.nonzero(seen)[0], progress=False)
+    return head, report, seen
+
+
+def test_the_head_learns_in_the_fold_and_turns_with_the_rig(stereo, head48, tmp_path):
+    scenes = placements(stereo, np.arange(len(stereo)))
+    ids = np.asarray(stereo.scene)
+    head, report, seen = head48
+    # Learnt from 48 placements, asked about the 16 others.
+    assert report.placements == 48 and report.rows == int(seen.sum())
+    record, _ = shape_tensors(stereo, np.arange(len(stereo)))
+    kp = head.keypoints([scenes[int(i)] for i in ids], stereo.pressure[:])
+    err = (kp[..., :2] - record[..., :2]).norm(dim=-1)[~seen]          # N x V x K px
+    still = (record[..., :2] - record[seen][..., :2].mean(0)).norm(dim=-1)[~seen]
+    assert float(err.mean()) < 0.4 * float(still.mean()), (float(err.mean()), float(still.mean()))
+    # Folded inputs: a placement turned and mirrored with its pressures is the same input,
+    # and the head's robot turns with it.
+    sym = RigSymmetry.from_config(CFG)
+    sc, p = scenes[int(ids[0])], np.asarray(stereo.pressure[0], dtype=float)
+    proj = head.projection
+    base = proj.backbone(head.keypoints([sc], [p]).numpy() - head.offset_px)[0]
+    for turns, mirrored in ((1, False), (2, True)):
+        f = sym.element(turns, mirrored)
+        x0, _ = folded_inputs(sym, [sc], [p], head.max_pressure_pa)
+        x1, _ = folded_inputs(sym, [f.scene(sc)], [f.pressures(p)], head.max_pressure_pa)
+        torch.testing.assert_close(x0, x1, atol=1e-4, rtol=0)
+        turned = proj.backbone(head.keypoints([f.scene(sc)], [f.pressures(p)]).numpy()
+                               - head.offset_px)[0]
+        np.testing.assert_allclose(turned[0], f.points(base[0]), atol=2e-5)      # metres
+    # Saved and loaded, it predicts the same; another camera, or bad weights, are refused.
+    saved = head.save(tmp_path / 'head')
+    again = ShapePredictor.load(saved, CFG)
+    torch.testing.assert_close(again.keypoints([sc], [p]), head.keypoints([sc], [p]))
+    moved = replace(CFG, cameras=dict(CFG.cameras, side=replace(CFG.cameras['side'], fx=1300.0)))
+    with pytest.raises(PlacementHeadError, match="camera 'side'"):
+        ShapePredictor.load(saved, moved)
+    (saved / 'head.safetensors').write_bytes(b'not weights')
+    with pytest.raises(PlacementHeadError, match='cannot read'):
+        ShapePredictor.load(saved, CFG)
+    meta = json.loads((saved / 'head.json').read_text())
+    assert meta['format'] == 'softshape-placement-head' and meta['views'] == VIEWS
+
+
+def test_a_dataset_without_placements_cannot_teach_the_head(stereo):
+    class Bare:                              # a dataset built from bags without a session
+        meta, scene, shape, pressure = {}, stereo.scene, None, stereo.pressure
+
+        def __len__(self):
+            return len(stereo)
+    bare = Bare()
+    with pytest.raises(PlacementHeadError, match='placements and the shape record'):
+        train_shape_predictor(bare, CFG, VIEWS, steps=1, progress=False)
+
+
+def test_the_fit_renders_what_the_simulator_draws(stereo):
+    # The fit's own rendering of the true rest scene matches the dataset's rest images to
+    # rounding (mean squared error of a uniform +-0.5 rounding is 1/12).
+    fit = PlacementFit(CFG, VIEWS)
+    scenes = placements(stereo, np.arange(len(stereo)))
+    for row in (0, 5):
+        sid = int(stereo.scene[row])
+        image = np.asarray(stereo.initial[row], np.float32)
+        assert fit.mse(scenes[sid], image) < 0.1
+        moved = replace(scenes[sid], position_m=tuple(np.add(scenes[sid].position_m,
+                                                             [0.001, 0, 0])))
+        assert fit.mse(moved, image) > 1.0
+    with pytest.raises(ValueError, match='rest images must be'):
+        fit.mse(scenes[0], np.zeros((1, 64, 64)))
+
+
+def test_the_placement_predictor_fits_once_per_scene_and_draws_the_heads_robot(
+        stereo, head48, monkeypatch):
+    from softshape_ros.demo.pipeline import PRETRAINED
+    from softshape_ros.model.checkpoint import load_checkpoint
+    from softshape_ros.model.metrics import RobotSilhouette, evaluate_arrays
+    from softshape_ros.model.placement_predictor import PlacementPredictor
+    head, _, seen = head48
+    model, config = load_checkpoint(PRETRAINED)
+    pred = PlacementPredictor(model, config, head, CFG)
+    fits = []
+    real_fit = pred.fit.fit
+    monkeypatch.setattr(pred.fit, 'fit', lambda *a, **k: fits.append(1) or real_fit(*a, **k))
+    ids = np.asarray(stereo.scene)
+    rows = np.nonzero(ids == np.unique(ids[~seen])[0])[0]          # an unseen placement
+    truth = placements(stereo, rows)[int(ids[rows[0]])]
+    initial = np.asarray(stereo.initial[rows])
+    out = pred.predict_batch(initial, np.asarray(stereo.pressure[rows]))
+    assert out.shape == initial.shape and out.dtype == np.uint8 and len(fits) == 1
+    scene = pred.placement(initial[0])
+    assert len(fits) == 1                                           # cached per rest images
+    assert scene.object == truth.object
+    assert np.abs(np.subtract(scene.position_m, truth.position_m))[:2].max() < 5e-4
+    if 'height_m' in truth.dims:        # the lower end may leave the frame: its top is seen
+        top = [sc.position_m[2] + sc.dims['height_m'] / 2 for sc in (scene, truth)]
+        assert abs(top[0] - top[1]) < 5e-4
+    r = evaluate_arrays(initial, np.asarray(stereo.target[rows]), out,
+                        RobotSilhouette.fit(np.asarray(stereo.initial)))
+    print('placement predictor', r['model']['silhouette_iou'], r['copy']['silhouette_iou'])
+    assert r['model']['silhouette_iou'] > max(0.9, r['copy']['silhouette_iou'])
+    one = pred.predict(initial[0], stereo.pressure[rows[0]])
+    np.testing.assert_array_equal(one, out[0])
+    mono = ShapePredictor.build(CFG, ['main'], 64, head.radius_m, head.offset_px[:1],
+                                head.max_pressure_pa)
+    with pytest.raises(PlacementHeadError, match="views \\['main'\\]"):
+        PlacementPredictor(model, config, mono, CFG)
