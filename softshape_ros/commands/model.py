@@ -139,7 +139,16 @@ def _distance_sweep(args) -> int:
     if args.supersample < 0:
         raise ValueError(f'--supersample must be >= 0 (0: the camera\'s pixels), got '
                          f'{args.supersample}')
-    print(json.dumps(run(args.checkpoint, args.out, args.supersample), indent=2))
+    print(json.dumps(run(args.checkpoint, args.out, args.supersample, args.placement_head),
+                     indent=2))
+    return 0
+
+
+def _placement_head(args) -> int:
+    from softshape_ros.experiments.placement_head import run
+    print(json.dumps(run(args.train, args.test, args.checkpoint, args.out, args.steps,
+                         args.workers, args.limit, progress=not args.quiet,
+                         head=args.head), indent=2))
     return 0
 
 
@@ -288,4 +297,20 @@ def register(sub) -> None:
     p.add_argument('--supersample', type=int, default=SUPERSAMPLE,
                    help=f'render the images at this many samples a pixel a side (default '
                         f"{SUPERSAMPLE}; 0: the camera's own pixels)")
+    p.add_argument('--placement-head', default=None,
+                   help='predict by the placement path: this head (softshape placement-head), '
+                        'drawn by the checkpoint for each fitted placement')
     p.set_defaults(func=_distance_sweep)
+
+    p = sub.add_parser('placement-head', help='train the folded placement head, fit the test '
+                                              "placements, and score what the tube model draws")
+    p.add_argument('--train', required=True, help='simulated dataset the head learns from')
+    p.add_argument('--test', required=True, help='simulated dataset of held-out placements')
+    p.add_argument('--checkpoint', required=True, help='tube checkpoint: reads and draws')
+    p.add_argument('--out', required=True, help='folder for head/ and placement_head.json')
+    p.add_argument('--steps', type=int, default=20000, help='head training steps (batch 512)')
+    p.add_argument('--workers', type=int, default=2, help='processes fitting placements')
+    p.add_argument('--limit', type=int, default=None, help='fit only the first N placements')
+    p.add_argument('--head', default=None, help='use this saved head instead of training one')
+    p.add_argument('--quiet', action='store_true', help='no progress bars')
+    p.set_defaults(func=_placement_head)

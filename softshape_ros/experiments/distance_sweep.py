@@ -142,7 +142,8 @@ def _px(v) -> float | None:
 
 
 def distance_sweep(checkpoint, path=None, distances=DISTANCES_M,
-                   supersample: int = SUPERSAMPLE, turned: bool = True) -> dict:
+                   supersample: int = SUPERSAMPLE, turned: bool = True,
+                   placement_head=None) -> dict:
     """
     Run the sweep for ``checkpoint``; draw the panels to ``path`` (PNG) if given.
 
@@ -151,6 +152,8 @@ def distance_sweep(checkpoint, path=None, distances=DISTANCES_M,
     ``turned``: also run the same contact turned about the robot (:func:`setups`; one
     actuation is a thin check: a model's answer there swings by a pixel or two between
     recipes), with a second figure beside ``path`` (``*_turned.png``).
+    ``placement_head``: predict by the placement path instead (the checkpoint draws what the
+    head predicts for each rest image's fitted placement; ``model/placement_predictor``).
 
     Returns the actuation, one :class:`SweepRow` per distance (as dicts) and the worst
     shift error over the distances (Fig. 4(c), main view); with ``turned`` also
@@ -159,8 +162,13 @@ def distance_sweep(checkpoint, path=None, distances=DISTANCES_M,
     """
     from softshape_ros.sim.rig import SimRig
 
-    pred = Predictor.from_checkpoint(checkpoint)
-    rig = SimRig(load_rig_config())
+    cfg = load_rig_config()
+    if placement_head is None:
+        pred = Predictor.from_checkpoint(checkpoint)
+    else:
+        from softshape_ros.model.placement_predictor import PlacementPredictor
+        pred = PlacementPredictor.from_paths(checkpoint, placement_head, cfg)
+    rig = SimRig(cfg)
     lim = np.asarray(pred.max_pressure_pa)
     plan = setups(rig, lim)[:None if turned else 1]
     runs = [_sweep(rig, pred, s, distances, supersample) for s in plan]
@@ -184,6 +192,7 @@ def distance_sweep(checkpoint, path=None, distances=DISTANCES_M,
                                       f'{r.tip_shift_px_predicted:.0f}' for r in rows])
     worst = max(r.shift_error_px for r in rows)
     res = {'checkpoint': str(checkpoint), 'supersample': supersample,
+           'placement_head': None if placement_head is None else str(placement_head),
            'actuation_pa': act.tolist(),
            'rows': [asdict(r) for r in rows], 'worst_shift_error_px': worst,
            'within_tolerance': bool(worst <= SHIFT_TOLERANCE_PX),
@@ -262,10 +271,11 @@ def _turned_figure(pushes, distances, views, path) -> None:
     plt.close(fig)
 
 
-def run(checkpoint, out, supersample: int = SUPERSAMPLE) -> dict:
+def run(checkpoint, out, supersample: int = SUPERSAMPLE, placement_head=None) -> dict:
     """Write ``distance_sweep.json`` and ``distance_sweep.png`` to ``out``; return the result."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    res = distance_sweep(checkpoint, out / 'distance_sweep.png', supersample=supersample)
+    res = distance_sweep(checkpoint, out / 'distance_sweep.png', supersample=supersample,
+                         placement_head=placement_head)
     (out / 'distance_sweep.json').write_text(json.dumps(res, indent=2))
     return res
