@@ -196,3 +196,58 @@ def test_missing_or_corrupt_model_fails_at_start_naming_the_file(
     w.write_bytes(w.read_bytes()[:-100])
     with pytest.raises(ValueError, match='model.safetensors'):
         InferenceNode(parameter_overrides=[Parameter('model', value=str(bad))])
+
+
+def test_the_placement_path_serves_what_it_predicts_offline(ros, trained_checkpoint, tmp_path):
+    """With ``placement_head``: the tube model draws the head's robot for the fitted placement."""
+    from softshape_ros.data import load_dataset
+    from softshape_ros.demo.pipeline import PRETRAINED
+    from softshape_ros.model.placement_head import train_shape_predictor
+    from softshape_ros.model.placement_predictor import PlacementPredictor
+    from softshape_ros.nodes.inference import InferenceNode
+    from softshape_ros.nodes.mock_hardware import MockHardware
+    cfg = load_rig_config()
+    # A head learnt briefly from the inference fixtures' small dataset: the test is that the
+    # node serves the placement path, not how good this head is.
+    ds = load_dataset(trained_checkpoint.parent / 'dataset')
+    head, _ = train_shape_predictor(ds, cfg, ['main', 'side'], steps=50, batch=32,
+                                    progress=False)
+    head_dir = head.save(tmp_path / 'head')
+    probe = Probe(ros, cfg)
+    ros.add(MockHardware(parameter_overrides=[Parameter('free_run_hz', value=0.0)]))
+    node = ros.add(InferenceNode(parameter_overrides=[
+        Parameter('model', value=str(PRETRAINED)),
+        Parameter('placement_head', value=str(head_dir))]))
+    assert isinstance(node.core.predictor, PlacementPredictor)
+    ros.wait_for(lambda: node.count_subscribers(cfg.topics.pressure_command) >= 2
+                 and probe.node.count_subscribers(cfg.topics.trigger) >= 1
+                 and probe.node.count_publishers(cfg.topics.camera('predicted_image', 'side')),
+                 timeout=20, what='graph connections')
+    scene = Scene(id=3, object='cylinder', position_m=[0.026, 0.0, 0.02],
+                  dims={'radius_m': 0.008, 'height_m': 0.05})
+    probe.scene.publish(String(data=scene.to_json()))
+    ros.wait_for(lambda: node.awaiting_rest, what='inference to see the scene')
+    rest_ns = 2_000_000_000_123
+    probe.snap_rest(scene.id, rest_ns)
+    ros.wait_for(lambda: node.core.ready, timeout=20, what='initial images from the rest frames')
+    ros.wait_for(lambda: all(rest_ns in probe.camera[v] for v in ('main', 'side')),
+                 what='the probe to see the rest frames too')
+    pressures = [0.0, 90e3, 0.0, 0.0, 90e3, 0.0]
+    probe.command.publish(Float64MultiArray(data=pressures))
+    ros.wait_for(lambda: probe.n_predicted() >= 1, timeout=60, what='predicted images')
+    fitted = node.core.predictor.placement(node.core.initial())
+    assert np.abs(np.subtract(fitted.position_m, scene.position_m))[:2].max() < 5e-4
+    initial = np.stack([preprocess(probe.camera[v][rest_ns], cfg.cameras[v].crop_px, 64,
+                                   gray=True) for v in ('main', 'side')])
+    want = node.core.predictor.predict(initial, pressures)
+    for i, v in enumerate(('main', 'side')):
+        np.testing.assert_array_equal(image_to_numpy(probe.predicted[v][0]), want[i, 0])
+    # A head made for other cameras is refused at start, naming the file.
+    import dataclasses
+    moved = dataclasses.replace(head, projection=type(head.projection)(
+        dataclasses.replace(cfg, cameras=dict(cfg.cameras, side=dataclasses.replace(
+            cfg.cameras['side'], fx=1300.0))), ['main', 'side'], 64))
+    other = moved.save(tmp_path / 'other_head')
+    with pytest.raises(ValueError, match="other_head: trained for another camera 'side'"):
+        InferenceNode(parameter_overrides=[Parameter('model', value=str(PRETRAINED)),
+                                           Parameter('placement_head', value=str(other))])

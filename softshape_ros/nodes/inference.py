@@ -33,6 +33,8 @@ from softshape_ros.nodes.parameters import Param, declare
 
 PARAMETERS = [
     Param('model', '', 'checkpoint folder (model.safetensors + config.json); required'),
+    Param('placement_head', '', 'placement head folder (softshape placement-head): draw what '
+          'it predicts for the placement fitted to the rest images (simulated rig only)'),
     Param('threads', 1, 'torch CPU threads for the model', (1, 256)),
     Param('overlay', True, 'also publish /softshape/predicted/{view}/overlay', live=True),
     Param('reliable_images', True, 'camera subscriptions reliable (false for best-effort '
@@ -60,8 +62,13 @@ class InferenceNode(Node):
                              '(ros2 run softshape_ros inference --ros-args -p model:=PATH)')
         import torch
         torch.set_num_threads(max(1, threads))
-        from softshape_ros.model import Predictor
-        self.core = InferenceCore(Predictor.from_checkpoint(model_path), self.cfg, model_path)
+        if p.placement_head:
+            from softshape_ros.model.placement_predictor import PlacementPredictor
+            predictor = PlacementPredictor.from_paths(model_path, p.placement_head, self.cfg)
+        else:
+            from softshape_ros.model import Predictor
+            predictor = Predictor.from_checkpoint(model_path)
+        self.core = InferenceCore(predictor, self.cfg, model_path)
         self.get_logger().info(f'model {model_path}: views {self.core.views}, '
                                f'{"gray" if self.core.gray else "RGB"} {self.core.size}px')
         t = self.cfg.topics
