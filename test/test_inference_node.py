@@ -71,20 +71,35 @@ class Probe:
             return min(len(v) for v in self.predicted.values())
 
 
-@pytest.fixture
-def rig(ros, trained_checkpoint):
+def start_rig(ros, **params):
+    """The mock rig, an inference node with ``params`` and the probe, all connected."""
     from softshape_ros.nodes.inference import InferenceNode
     from softshape_ros.nodes.mock_hardware import MockHardware
     cfg = load_rig_config()
     probe = Probe(ros, cfg)
     mock = ros.add(MockHardware(parameter_overrides=[Parameter('free_run_hz', value=0.0)]))
     node = ros.add(InferenceNode(parameter_overrides=[
-        Parameter('model', value=str(trained_checkpoint))]))
+        Parameter(k, value=str(v)) for k, v in params.items()]))
     ros.wait_for(lambda: node.count_subscribers(cfg.topics.pressure_command) >= 2
                  and probe.node.count_subscribers(cfg.topics.trigger) >= 1
                  and probe.node.count_publishers(cfg.topics.camera('predicted_image', 'side')),
                  timeout=20, what='graph connections')
     return cfg, probe, node, mock
+
+
+def show_scene(ros, probe, node, scene, rest_ns):
+    """Publish ``scene``, snap its rest images; return once inference and probe have them."""
+    probe.scene.publish(String(data=scene.to_json()))
+    ros.wait_for(lambda: node.awaiting_rest, what='inference to see the scene')
+    probe.snap_rest(scene.id, rest_ns)
+    ros.wait_for(lambda: node.core.ready, timeout=20, what='initial images from the rest frames')
+    ros.wait_for(lambda: all(rest_ns in probe.camera[v] for v in ('main', 'side')),
+                 what='the probe to see the rest frames too')
+
+
+@pytest.fixture
+def rig(ros, trained_checkpoint):
+    return start_rig(ros, model=trained_checkpoint)
 
 
 def test_predictions_equal_offline_model_and_bad_input_publishes_nothing(rig, trained_checkpoint,
@@ -98,13 +113,8 @@ def test_predictions_equal_offline_model_and_bad_input_publishes_nothing(rig, tr
 
     scene = Scene(id=7, object='cylinder', position_m=[0.024, 0.0, 0.02],
                   dims={'radius_m': 0.008, 'height_m': 0.05})
-    probe.scene.publish(String(data=scene.to_json()))
-    ros.wait_for(lambda: node.awaiting_rest, what='inference to see the scene')
     rest_ns = 1_000_000_000_123
-    probe.snap_rest(scene.id, rest_ns)
-    ros.wait_for(lambda: node.core.ready, timeout=20, what='initial images from the rest frames')
-    ros.wait_for(lambda: all(rest_ns in probe.camera[v] for v in ('main', 'side')),
-                 what='the probe to see the rest frames too')
+    show_scene(ros, probe, node, scene, rest_ns)
     # Diagnostics name the scene the initial images are of (a client tells a stale
     # 'waiting' from before the scene from one after it), and the cameras matched to each
     # view's reader (the mock rig's, one a view: a client snaps rest images once it is).
@@ -205,7 +215,6 @@ def test_the_placement_path_serves_what_it_predicts_offline(ros, trained_checkpo
     from softshape_ros.model.placement_head import train_shape_predictor
     from softshape_ros.model.placement_predictor import PlacementPredictor
     from softshape_ros.nodes.inference import InferenceNode
-    from softshape_ros.nodes.mock_hardware import MockHardware
     cfg = load_rig_config()
     # A head learnt briefly from the inference fixtures' small dataset: the test is that the
     # node serves the placement path, not how good this head is.
@@ -213,25 +222,12 @@ def test_the_placement_path_serves_what_it_predicts_offline(ros, trained_checkpo
     head, _ = train_shape_predictor(ds, cfg, ['main', 'side'], steps=50, batch=32,
                                     progress=False)
     head_dir = head.save(tmp_path / 'head')
-    probe = Probe(ros, cfg)
-    ros.add(MockHardware(parameter_overrides=[Parameter('free_run_hz', value=0.0)]))
-    node = ros.add(InferenceNode(parameter_overrides=[
-        Parameter('model', value=str(PRETRAINED)),
-        Parameter('placement_head', value=str(head_dir))]))
+    _, probe, node, _ = start_rig(ros, model=PRETRAINED, placement_head=head_dir)
     assert isinstance(node.core.predictor, PlacementPredictor)
-    ros.wait_for(lambda: node.count_subscribers(cfg.topics.pressure_command) >= 2
-                 and probe.node.count_subscribers(cfg.topics.trigger) >= 1
-                 and probe.node.count_publishers(cfg.topics.camera('predicted_image', 'side')),
-                 timeout=20, what='graph connections')
     scene = Scene(id=3, object='cylinder', position_m=[0.026, 0.0, 0.02],
                   dims={'radius_m': 0.008, 'height_m': 0.05})
-    probe.scene.publish(String(data=scene.to_json()))
-    ros.wait_for(lambda: node.awaiting_rest, what='inference to see the scene')
     rest_ns = 2_000_000_000_123
-    probe.snap_rest(scene.id, rest_ns)
-    ros.wait_for(lambda: node.core.ready, timeout=20, what='initial images from the rest frames')
-    ros.wait_for(lambda: all(rest_ns in probe.camera[v] for v in ('main', 'side')),
-                 what='the probe to see the rest frames too')
+    show_scene(ros, probe, node, scene, rest_ns)
     pressures = [0.0, 90e3, 0.0, 0.0, 90e3, 0.0]
     probe.command.publish(Float64MultiArray(data=pressures))
     ros.wait_for(lambda: probe.n_predicted() >= 1, timeout=60, what='predicted images')

@@ -78,17 +78,10 @@ class PlacementPredictor(Predictor):
     @torch.inference_mode()
     def predict_batch(self, initial_b, pressures_b) -> np.ndarray:
         """B x V x C x S x S uint8 + B x 6 Pa -> B x V x C x S x S uint8."""
-        imgs = self._images(initial_b, batch=True)
-        plist = list(pressures_b)
-        if len(plist) != imgs.shape[0]:
-            raise ValueError(f'{imgs.shape[0]} image sets but {len(plist)} pressure vectors')
-        if not plist:
-            return np.zeros((0,) + self.image_shape, np.uint8)
-        p = np.stack([self._pressures(q) for q in plist])                 # B x 6, in [0, 1]
+        imgs, p, x = self._batch(initial_b, pressures_b)
+        if not len(imgs):
+            return imgs.copy()
         scenes = [self.placement(i) for i in imgs]
         kp = self.shape.keypoints(scenes, p * self.max_pressure_pa)      # B x V x K x 4
-        b, v, c, s, _ = imgs.shape
-        x = torch.from_numpy(imgs.reshape(b, v * c, s, s).astype(np.float32) / 255)
         y = self.model(x, torch.from_numpy(p.astype(np.float32)), truth=kp, parts=True).teacher
-        out = torch.clamp(y * 255 + 0.5, 0, 255).to(torch.uint8).numpy()
-        return out.reshape(b, v, c, s, s)
+        return self._to_uint8(y, imgs.shape)

@@ -56,9 +56,8 @@ class Predictor:
         p = check_command(pressures, self.max_pressure_pa).pressures_pa
         return (p / self.max_pressure_pa).astype(np.float32)
 
-    @torch.inference_mode()
-    def predict_batch(self, initial_b, pressures_b) -> np.ndarray:
-        """B x V x C x S x S uint8 + B x 6 Pa -> B x V x C x S x S uint8."""
+    def _batch(self, initial_b, pressures_b) -> tuple[np.ndarray, np.ndarray, torch.Tensor]:
+        """Check a batch: (B x V x C x S x S uint8, B x 6 in max-pressure units, network input)."""
         imgs = self._images(initial_b, batch=True)
         plist = list(pressures_b)
         if len(plist) != imgs.shape[0]:
@@ -66,9 +65,17 @@ class Predictor:
         p = np.stack([self._pressures(v) for v in plist]) if plist else np.zeros((0, 6))
         b, v, c, s, _ = imgs.shape
         x = torch.from_numpy(imgs.reshape(b, v * c, s, s).astype(np.float32) / 255)
-        y = self.model(x, torch.from_numpy(p.astype(np.float32)))
-        out = torch.clamp(y * 255 + 0.5, 0, 255).to(torch.uint8).numpy()
-        return out.reshape(b, v, c, s, s)
+        return imgs, p, x
+
+    @staticmethod
+    def _to_uint8(y: torch.Tensor, shape) -> np.ndarray:
+        return torch.clamp(y * 255 + 0.5, 0, 255).to(torch.uint8).numpy().reshape(shape)
+
+    @torch.inference_mode()
+    def predict_batch(self, initial_b, pressures_b) -> np.ndarray:
+        """B x V x C x S x S uint8 + B x 6 Pa -> B x V x C x S x S uint8."""
+        imgs, p, x = self._batch(initial_b, pressures_b)
+        return self._to_uint8(self.model(x, torch.from_numpy(p.astype(np.float32))), imgs.shape)
 
     def predict(self, initial, pressures_pa) -> np.ndarray:
         """V x C x S x S uint8 + 6 pressures (Pa) -> V x C x S x S uint8."""
