@@ -133,6 +133,11 @@ def test_the_head_learns_in_the_fold_and_turns_with_the_rig(stereo, head48, tmp_
         ShapePredictor.load(saved, CFG)
     meta = json.loads((saved / 'head.json').read_text())
     assert meta['format'] == 'softshape-placement-head' and meta['views'] == VIEWS
+    saved = head.save(tmp_path / 'head2')
+    del meta['cameras']
+    (saved / 'head.json').write_text(json.dumps(meta))
+    with pytest.raises(PlacementHeadError, match='incomplete or malformed'):
+        ShapePredictor.load(saved, CFG)
 
 
 def test_a_dataset_without_placements_cannot_teach_the_head(stereo):

@@ -142,7 +142,9 @@ class ShapePredictor:
                'cameras': {v: cam_signature(c) for v, c in zip(self.projection.views,
                                                                self.projection.cameras)},
                'chambers': list(self.chambers)}
-        (d / CONFIG).write_text(json.dumps(cfg, indent=1))
+        tmp = d / (CONFIG + '.tmp')
+        tmp.write_text(json.dumps(cfg, indent=1))
+        os.replace(tmp, d / CONFIG)
         return d
 
     @classmethod
@@ -154,16 +156,20 @@ class ShapePredictor:
             state = load_file(d / WEIGHTS)
         except (OSError, ValueError, SafetensorError) as e:
             raise PlacementHeadError(f'{d}: cannot read the placement head: {e}') from e
-        if meta.get('format') != FORMAT:
+        if not isinstance(meta, dict) or meta.get('format') != FORMAT:
             raise PlacementHeadError(f'{d / CONFIG}: not a placement head')
-        out = cls.build(cfg, meta['views'], meta['size'], np.asarray(meta['radius_m']),
-                        np.asarray(meta['offset_px'], np.float32),
-                        np.asarray(meta['max_pressure_pa']), meta['keypoints'])
+        try:
+            out = cls.build(cfg, meta['views'], meta['size'], np.asarray(meta['radius_m']),
+                            np.asarray(meta['offset_px'], np.float32),
+                            np.asarray(meta['max_pressure_pa']), meta['keypoints'])
+            cameras, chambers = dict(meta['cameras']), list(meta['chambers'])
+        except (KeyError, TypeError, ValueError) as e:
+            raise PlacementHeadError(f'{d / CONFIG}: incomplete or malformed ({e!r})') from e
         for v, c in zip(out.projection.views, out.projection.cameras):
-            if meta['cameras'].get(v) != cam_signature(c):
+            if cameras.get(v) != cam_signature(c):
                 raise PlacementHeadError(f'{d}: trained for another camera {v!r} than the rig\'s')
-        if meta['chambers'] != [c.name for c in cfg.chambers]:
-            raise PlacementHeadError(f'{d}: trained for chambers {meta["chambers"]}')
+        if chambers != [c.name for c in cfg.chambers]:
+            raise PlacementHeadError(f'{d}: trained for chambers {chambers}')
         try:
             out.head.load_state_dict(state)
         except RuntimeError as e:
