@@ -72,7 +72,7 @@ class Probe:
 
 
 def start_rig(ros, **params):
-    """The mock rig, an inference node with ``params`` and the probe, all connected."""
+    """Start the mock rig, an inference node with ``params`` and the probe; wait for them."""
     from softshape_ros.nodes.inference import InferenceNode
     from softshape_ros.nodes.mock_hardware import MockHardware
     cfg = load_rig_config()
@@ -212,8 +212,8 @@ def test_the_placement_path_serves_what_it_predicts_offline(ros, trained_checkpo
     """With ``placement_head``: the tube model draws the head's robot for the fitted placement."""
     from softshape_ros.data import load_dataset
     from softshape_ros.demo.pipeline import PRETRAINED
-    from softshape_ros.model.placement_head import train_shape_predictor
-    from softshape_ros.model.placement_predictor import PlacementPredictor
+    from softshape_ros.experiments.placement_head import train_shape_predictor
+    from softshape_ros.experiments.placement_predictor import PlacementPredictor
     from softshape_ros.nodes.inference import InferenceNode
     cfg = load_rig_config()
     # A head learnt briefly from the inference fixtures' small dataset: the test is that the

@@ -11,7 +11,7 @@ import torch
 from softshape_ros.config import load_rig_config
 from softshape_ros.data import load_dataset
 from softshape_ros.model.data import placements, scene_from_vector, scene_vector, shape_tensors
-from softshape_ros.model.placement_head import (
+from softshape_ros.experiments.placement_head import (
     PlacementHeadError, ShapePredictor, ShapeProjection, folded_inputs, train_shape_predictor)
 from softshape_ros.scene import Scene
 from softshape_ros.sim.generate import generate, make_plan
@@ -88,7 +88,7 @@ def test_the_projection_goes_from_the_record_to_the_backbone_and_back(stereo):
 
 @pytest.fixture(scope='module')
 def head48(stereo):
-    """A placement head learnt from the first 48 of the 64 placements (500 steps)."""
+    """Learn a placement head from the first 48 of the 64 placements (500 steps)."""
     ids = np.asarray(stereo.scene)
     seen = np.isin(ids, np.unique(ids)[:48])
     head, report = train_shape_predictor(stereo, CFG, VIEWS, steps=500, batch=128,
@@ -172,7 +172,7 @@ def test_the_placement_predictor_fits_once_per_scene_and_draws_the_heads_robot(
     from softshape_ros.demo.pipeline import PRETRAINED
     from softshape_ros.model.checkpoint import load_checkpoint
     from softshape_ros.model.metrics import RobotSilhouette, evaluate_arrays
-    from softshape_ros.model.placement_predictor import PlacementPredictor
+    from softshape_ros.experiments.placement_predictor import PlacementPredictor
     head, _, seen = head48
     model, config = load_checkpoint(PRETRAINED)
     pred = PlacementPredictor(model, config, head, CFG)
@@ -202,3 +202,32 @@ def test_the_placement_predictor_fits_once_per_scene_and_draws_the_heads_robot(
                                 head.max_pressure_pa)
     with pytest.raises(PlacementHeadError, match="views \\['main'\\]"):
         PlacementPredictor(model, config, mono, CFG)
+
+
+def test_the_placement_head_command_trains_fits_and_scores_four_ways(stereo, tmp_path):
+    from softshape_ros.cli import main
+    from softshape_ros.demo.pipeline import PRETRAINED
+    out = tmp_path / 'study'
+    assert main(['placement-head', '--train', str(stereo.path), '--test', str(stereo.path),
+                 '--checkpoint', str(PRETRAINED), '--out', str(out), '--steps', '20',
+                 '--workers', '1', '--limit', '1', '--quiet']) == 0
+    res = json.loads((out / 'placement_head.json').read_text())
+    assert res['test_placements'] == 1 and res['head']['steps'] == 20
+    assert set(res['predictions']) == {'tube model alone', 'head, true placement',
+                                       'head, read placement (unfitted)',
+                                       'head, fitted placement'}
+    for row in res['predictions'].values():
+        iou = row['iou_all_touching_free']
+        assert all(0.0 <= v <= 1.0 for v in iou if v == v)            # NaN: no such rows
+    fits = json.loads((out / 'fitted_placements.json').read_text())
+    (fit,) = fits.values()
+    assert fit['fitted']['object'] == fit['truth']['object']
+    assert ShapePredictor.load(out / 'head', CFG).head.keypoints == 16
+    # Again from the saved head: nothing trained, the same fit.
+    again = tmp_path / 'again'
+    assert main(['placement-head', '--train', 'unused', '--test', str(stereo.path),
+                 '--checkpoint', str(PRETRAINED), '--out', str(again), '--head',
+                 str(out / 'head'), '--workers', '1', '--limit', '1', '--quiet']) == 0
+    assert json.loads((again / 'placement_head.json').read_text())['head'] == {
+        'loaded': str(out / 'head')}
+    assert json.loads((again / 'fitted_placements.json').read_text()) == fits

@@ -145,7 +145,7 @@ def _distance_sweep(args) -> int:
 
 
 def _placement_head(args) -> int:
-    from softshape_ros.experiments.placement_head import run
+    from softshape_ros.experiments.placement_study import run
     print(json.dumps(run(args.train, args.test, args.checkpoint, args.out, args.steps,
                          args.workers, args.limit, progress=not args.quiet,
                          head=args.head), indent=2))

@@ -153,7 +153,7 @@ def distance_sweep(checkpoint, path=None, distances=DISTANCES_M,
     actuation is a thin check: a model's answer there swings by a pixel or two between
     recipes), with a second figure beside ``path`` (``*_turned.png``).
     ``placement_head``: predict by the placement path instead (the checkpoint draws what the
-    head predicts for each rest image's fitted placement; ``model/placement_predictor``).
+    head predicts for each rest image's fitted placement; ``experiments/placement_predictor``).
 
     Returns the actuation, one :class:`SweepRow` per distance (as dicts) and the worst
     shift error over the distances (Fig. 4(c), main view); with ``turned`` also
@@ -166,7 +166,7 @@ def distance_sweep(checkpoint, path=None, distances=DISTANCES_M,
     if placement_head is None:
         pred = Predictor.from_checkpoint(checkpoint)
     else:
-        from softshape_ros.model.placement_predictor import PlacementPredictor
+        from softshape_ros.experiments.placement_predictor import PlacementPredictor
         pred = PlacementPredictor.from_paths(checkpoint, placement_head, cfg)
     rig = SimRig(cfg)
     lim = np.asarray(pred.max_pressure_pa)

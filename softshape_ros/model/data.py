@@ -134,7 +134,7 @@ def scene_vector(scene: Scene) -> list[float]:
 
 def scene_from_vector(vec, scene_id: int = 0, min_size_m: float = 5e-4) -> Scene:
     """
-    The placement :data:`SCENE_FEATURES` numbers describe (the inverse of :func:`scene_vector`).
+    Return the placement :data:`SCENE_FEATURES` numbers describe (:func:`scene_vector` undone).
 
     For a reader's description: the kind with the largest one-hot, sizes at least
     ``min_size_m``; of yaw only its half-turn class is seen, so it comes back within

@@ -63,7 +63,7 @@ class InferenceNode(Node):
         import torch
         torch.set_num_threads(max(1, threads))
         if p.placement_head:
-            from softshape_ros.model.placement_predictor import PlacementPredictor
+            from softshape_ros.experiments.placement_predictor import PlacementPredictor
             predictor = PlacementPredictor.from_paths(model_path, p.placement_head, self.cfg)
         else:
             from softshape_ros.model import Predictor

@@ -39,7 +39,7 @@ class FitError(ValueError):
 
 def placement_params(scene: Scene) -> np.ndarray:
     """
-    A placement as the fit moves it: position and sizes in mm, angles in 0.1 rad.
+    Return a placement as the fit moves it: position and sizes in mm, angles in 0.1 rad.
 
     Position, the kind's sizes, then roll, pitch and (for rings and prisms, whose yaw is
     seen) yaw: a reader reads the tilt too, a few hundredths of a radian off, and a ring
@@ -58,7 +58,7 @@ def placement_params(scene: Scene) -> np.ndarray:
 
 
 def placement_scene(template: Scene, params) -> Scene:
-    """The inverse of :func:`placement_params` (kind, id, a cylinder's yaw from ``template``)."""
+    """Undo :func:`placement_params` (kind, id, a cylinder's yaw from ``template``)."""
     t = np.asarray(params, dtype=float)
     pos = tuple(float(v) for v in t[:3] * 1e-3)
     yaw = template.rpy_rad[2]
@@ -76,27 +76,27 @@ def placement_scene(template: Scene, params) -> Scene:
 
 
 def twin(scene: Scene) -> Scene:
-    """The same prism described the other way round (yaw + pi, skew negated)."""
+    """Describe the same prism the other way round (yaw + pi, skew negated)."""
     d = dict(scene.dims, skew_rad=-scene.dims['skew_rad'])
     r, p, y = scene.rpy_rad
     return replace(scene, rpy_rad=(r, p, math.remainder(y + math.pi, 2 * math.pi)), dims=d)
 
 
 def quarter(scene: Scene) -> Scene:
-    """A prism turned a quarter with width and depth swapped: the same box, skew aside."""
+    """Turn a prism a quarter and swap width and depth: the same box, skew aside."""
     d = dict(scene.dims, width_m=scene.dims['depth_m'], depth_m=scene.dims['width_m'])
     r, p, y = scene.rpy_rad
     return replace(scene, rpy_rad=(r, p, math.remainder(y + math.pi / 2, 2 * math.pi)), dims=d)
 
 
 def flipped(scene: Scene) -> Scene:
-    """A prism leaning the other way (skew negated, nothing else)."""
+    """Lean a prism the other way (skew negated, nothing else)."""
     return replace(scene, dims=dict(scene.dims, skew_rad=-scene.dims['skew_rad']))
 
 
 def readings(scene: Scene) -> list[Scene]:
     """
-    A reading and the prisms a reader may have confused it with (eight).
+    Return a reading and the prisms a reader may have confused it with (eight).
 
     A reader sees yaw only up to a half turn, so the lean's sign it reads belongs to either
     yaw; and a box turned a quarter is the same box with width and depth swapped.
@@ -131,7 +131,7 @@ class PlacementFit:
             self.grids.append((cam, cam.grid(cam.crop, (self.size * self.ss,) * 2)))
 
     def render(self, scene: Scene) -> np.ndarray:
-        """The rest scene as (V, S, S) float gray levels (supersampled, area-averaged)."""
+        """Render the rest scene as (V, S, S) float gray levels (supersampled, area-averaged)."""
         obstacles = [obstacle_from_scene(scene)]
         s, k = self.size, self.ss
         return np.stack([render_view(cam, self.rest.backbone_m, self.rest.radii_m, obstacles,

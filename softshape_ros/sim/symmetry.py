@@ -7,7 +7,7 @@ the axis and handing each chamber's pressure to the chamber it lands on gives th
 equilibrium turned; so does mirroring about the vertical plane of a chamber's bend. A
 model that learns in one *fold* (a sector of 360 / (2 x chambers per segment) degrees,
 60 on the STIFF-FLOP rig) sees every placement that many times as densely: the placement
-head (``model/placement_head.py``) learns there. ``test_symmetry`` checks on the simulator
+head (``experiments/placement_head.py``) learns there. ``test_symmetry`` checks on the simulator
 that the turned and mirrored equilibria match to rounding.
 """
 
@@ -54,7 +54,7 @@ class Fold:
 
     def scene(self, scene: Scene) -> Scene:
         """
-        The placement turned (and mirrored) with the robot.
+        Turn (and mirror) a placement with the robot.
 
         A mirror turns the object's frame inside out in its own y; every object the rig
         uses (cylinder, ring, prism skewed along its x) is its own mirror image there, so
@@ -137,12 +137,12 @@ class RigSymmetry:
         return Fold(m, perm, self.base, t, self.mirror_angle if mirrored else None)
 
     def azimuth(self, point) -> float:
-        """A point's azimuth about the robot's axis (rad)."""
+        """Return a point's azimuth about the robot's axis (rad)."""
         d = np.asarray(point, dtype=float)[:2] - self.base[:2]
         return math.atan2(d[1], d[0])
 
     def fold_of(self, point) -> Fold:
-        """The symmetry that takes ``point`` into the fold: azimuth mirror .. mirror + 60 deg."""
+        """Return the symmetry taking ``point`` into the fold (azimuth mirror .. mirror + 60)."""
         rel = (self.azimuth(point) - self.mirror_angle) % (2 * math.pi)
         step = 2 * math.pi / self.order
         turns = (-int(rel // step)) % self.order

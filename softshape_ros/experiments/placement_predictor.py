@@ -3,7 +3,7 @@ The placement path as a predictor: read the placement, fit it, predict the shape
 
 Per rest image set (once, cached): the tube model's scene description gives a reading,
 ``sim.placement_fit`` fits it to the rest images (a few seconds). Per actuation: the
-placement head (``model.placement_head``) predicts the keypoints, which the tube model
+placement head (``experiments.placement_head``) predicts the keypoints, which the tube model
 draws over its own background, object and visibility. Same inputs and outputs as
 :class:`~softshape_ros.model.predictor.Predictor`, so the inference node serves it as it
 serves a checkpoint (its ``placement_head`` parameter).
@@ -22,7 +22,7 @@ import torch
 from softshape_ros.config import RigConfig
 from softshape_ros.model.checkpoint import load_checkpoint
 from softshape_ros.model.data import scene_from_vector
-from softshape_ros.model.placement_head import PlacementHeadError, ShapePredictor
+from softshape_ros.experiments.placement_head import PlacementHeadError, ShapePredictor
 from softshape_ros.model.predictor import Predictor
 from softshape_ros.scene import Scene
 
@@ -56,7 +56,7 @@ class PlacementPredictor(Predictor):
 
     @torch.inference_mode()
     def placement(self, initial: np.ndarray) -> Scene:
-        """V x C x S x S uint8 rest images -> the fitted placement (cached per image set)."""
+        """Read and fit the placement of V x C x S x S uint8 rest images (cached per image set)."""
         imgs = self._images(initial, batch=False)
         key = hashlib.sha1(imgs.tobytes()).digest()
         if key in self._placements:
