@@ -67,16 +67,8 @@ class ShapeProjection:
 
     def record(self, points: np.ndarray, radius: np.ndarray) -> np.ndarray:
         """(N, K, 3) world m + (K,) radius m -> (N, V, K, 4) keypoints as the shape record's."""
-        n, k, _ = points.shape
-        out = np.empty((n, len(self.cameras), k, 4), np.float32)
-        for v, cam in enumerate(self.cameras):
-            x0, y0, w, h = cam.crop
-            uvz = cam.project(points.reshape(-1, 3)).reshape(n, k, 3)
-            out[:, v, :, 0] = (uvz[..., 0] - x0 + 0.5) * self.size / w - 0.5
-            out[:, v, :, 1] = (uvz[..., 1] - y0 + 0.5) * self.size / h - 0.5
-            out[:, v, :, 2] = cam.input_focal_px(self.size) * radius / uvz[..., 2]
-            out[:, v, :, 3] = cam.input_depth_px(uvz[..., 2], self.z_base[v], self.size)
-        return out
+        return np.stack([cam.input_keypoints(points, radius, zb, self.size)
+                         for cam, zb in zip(self.cameras, self.z_base)], 1).astype(np.float32)
 
 
 def folded_inputs(sym: RigSymmetry, scenes, pressures_pa, max_pressure_pa):

@@ -52,6 +52,23 @@ class PinholeCamera:
         return np.column_stack([self.fx * pc[:, 0] / z + self.cx,
                                 self.fy * pc[:, 1] / z + self.cy, z])
 
+    def input_keypoints(self, points, radius, z_base: float, size: int) -> np.ndarray:
+        """
+        Return world points (..., 3) as the shape record's keypoints (..., 4) in this view.
+
+        x, y in the ``size`` x ``size`` input image of the crop (pixel centres at integer
+        coordinates), the tube's apparent ``radius`` (m, broadcast to the points) and the
+        depth past ``z_base`` (:meth:`input_depth_px`): ``generate.measure_shape`` records
+        these, and the placement head turns its 3D backbone into them.
+        """
+        x0, y0, w, h = self.crop
+        pts = np.asarray(points, dtype=float)
+        uvz = self.project(pts.reshape(-1, 3)).reshape(pts.shape)
+        return np.stack([(uvz[..., 0] - x0 + 0.5) * size / w - 0.5,
+                         (uvz[..., 1] - y0 + 0.5) * size / h - 0.5,
+                         self.input_focal_px(size) * radius / uvz[..., 2],
+                         self.input_depth_px(uvz[..., 2], z_base, size)], -1)
+
     def input_depth_px(self, z, z_base, size: int) -> np.ndarray:
         """
         Return camera depths ``z`` (m) as the shape record's depth: px further than ``z_base``.

@@ -337,16 +337,9 @@ def measure_shape(state, cameras, size: int, k: int = SHAPE_KEYPOINTS):
     sk = np.linspace(s[0], s[-1], k)
     pts = np.column_stack([np.interp(sk, s, state.backbone_m[:, i]) for i in range(3)])
     rad = np.interp(sk, s, state.radii_m)
-    kp, radius, depth = np.empty((len(cameras), k, 2)), np.empty((len(cameras), k)), \
-        np.empty((len(cameras), k))
-    for v, cam in enumerate(cameras):
-        x0, y0, w, h = cam.crop
-        uvz = cam.project(pts)
-        kp[v, :, 0] = (uvz[:, 0] - x0 + 0.5) * size / w - 0.5
-        kp[v, :, 1] = (uvz[:, 1] - y0 + 0.5) * size / h - 0.5
-        radius[v] = cam.input_focal_px(size) * rad / uvz[:, 2]
-        depth[v] = cam.input_depth_px(uvz[:, 2], uvz[0, 2], size)
-    return kp.astype(np.float32), radius.astype(np.float32), depth.astype(np.float32)
+    rec = np.stack([cam.input_keypoints(pts, rad, cam.project(pts[:1])[0, 2], size)
+                    for cam in cameras]).astype(np.float32)              # V x k x 4
+    return rec[..., :2], rec[..., 2], rec[..., 3]
 
 
 # -- worker side ------------------------------------------------------------------------
