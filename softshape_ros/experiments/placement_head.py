@@ -34,6 +34,7 @@ from softshape_ros.config import RigConfig
 from softshape_ros.model.data import placements, scene_vector, shape_tensors
 from softshape_ros.scene import Scene
 from softshape_ros.sim.camera import PinholeCamera
+from softshape_ros.sim.placement_fit import twin
 from softshape_ros.sim.symmetry import RigSymmetry
 
 FORMAT = 'softshape-placement-head'
@@ -71,9 +72,25 @@ class ShapeProjection:
                          for cam, zb in zip(self.cameras, self.z_base)], 1).astype(np.float32)
 
 
+def facing_out(scene: Scene, axis_xy) -> Scene:
+    """
+    Describe a prism with its x (the way it leans) pointing away from the robot's axis.
+
+    A prism and its twin (half a turn on, lean negated) are one object, but the features
+    see yaw only up to a half turn, so they would read as the prism leaning the other way.
+    Placements are drawn facing out (``sim/generate.random_scene``), so the head learns that
+    description; a fit or a person may give the other (docs/model.md).
+    """
+    if scene.object != 'prism':
+        return scene
+    out = math.atan2(scene.position_m[1] - axis_xy[1], scene.position_m[0] - axis_xy[0])
+    return twin(scene) if math.cos(scene.rpy_rad[2] - out) < 0 else scene
+
+
 def folded_inputs(sym: RigSymmetry, scenes, pressures_pa, max_pressure_pa):
     """Placements + (N, 6) Pa -> (N, 17 + 6) head inputs in the fold, and each row's Fold."""
     pmax = np.asarray(max_pressure_pa, dtype=float)
+    scenes = [facing_out(sc, sym.base[:2]) for sc in scenes]
     folds = [sym.fold_of(sc.position_m) for sc in scenes]
     x = [scene_vector(f.scene(sc)) + list(f.pressures(p) / pmax)
          for f, sc, p in zip(folds, scenes, np.asarray(pressures_pa, dtype=float))]
