@@ -16,7 +16,7 @@ from softshape_ros.experiments.placement_head import (
 from softshape_ros.scene import Scene
 from softshape_ros.sim.generate import generate, make_plan
 from softshape_ros.sim.placement_fit import (
-    FitError, PlacementFit, placement_params, placement_scene, twin)
+    FitError, PlacementFit, flipped, placement_params, placement_scene, twin)
 from softshape_ros.sim.symmetry import RigSymmetry
 
 CFG = load_rig_config()
@@ -72,6 +72,43 @@ def test_the_fit_reads_a_placement_to_a_fraction_of_a_millimetre(stereo, row):
     assert abs(top[0] - top[1]) < 2e-4, (err, top)
     with pytest.raises(FitError, match='sphere'):
         fit.fit(image, Scene(0, 'sphere', truth.position_m, (0, 0, 0), {'radius_m': 0.01}))
+
+
+def test_the_fit_keeps_objects_upright_and_clear_of_the_robot(stereo):
+    scenes = placements(stereo, np.arange(len(stereo)))
+    ids = np.asarray(stereo.scene)
+    sid = next(int(i) for i in np.unique(ids) if scenes[int(i)].object == 'cylinder')
+    truth = scenes[sid]
+    image = stereo.initial[int(np.nonzero(ids == sid)[0][0])]
+    # A cylinder read tilted by a few hundredths of a radian is fitted standing on its end,
+    # with two numbers fewer to move.
+    tilted = replace(truth, rpy_rad=(0.03, -0.02, 0.0))
+    assert len(placement_params(tilted, upright=True)) == len(placement_params(tilted)) - 2
+    fit = PlacementFit(CFG, VIEWS)
+    r = fit.fit(image, tilted)
+    assert r.scene.rpy_rad[:2] == (0.0, 0.0)
+    assert r.mse < 0.1
+    # The clearance is the least distance to the robot's surface at rest; a fit asked to
+    # keep more than the images show keeps it (the images alone would put it back).
+    c = fit.clearance(truth)
+    assert 0.0 < c < 0.012
+    inside = replace(truth, position_m=tuple(np.asarray(truth.position_m) * 0.2))
+    assert fit.clearance(inside) < 0
+    far = PlacementFit(CFG, VIEWS, min_clearance_m=c + 0.004, max_starts=2)
+    held = far.fit(image, truth)
+    assert far.clearance(held.scene) > c + 0.004 - 3e-4
+    assert held.mse > r.mse
+
+
+def test_a_prism_and_its_twin_are_one_input_to_the_head():
+    sym = RigSymmetry.from_config(CFG)
+    az = 0.7
+    prism = Scene(3, 'prism', (0.03 * math.cos(az), 0.03 * math.sin(az), 0.03), (0.0, 0.0, az),
+                  {'width_m': 0.012, 'depth_m': 0.009, 'height_m': 0.05, 'skew_rad': 0.2})
+    p = [[1e4, 0, 0, 2e4, 0, 0]] * 3
+    x, _ = folded_inputs(sym, [prism, twin(prism), flipped(prism)], p, [5e4] * 6)
+    torch.testing.assert_close(x[1], x[0])
+    assert not torch.allclose(x[2], x[0])        # leaning the other way: another object
 
 
 def test_the_projection_goes_from_the_record_to_the_backbone_and_back(stereo):

@@ -31,48 +31,58 @@ START_SPREAD = 1.0      # mm (and 0.1 rad) around the reading for the restarts
 SCALES = (1.0, 0.5, 0.25, 0.1)      # Nelder-Mead simplex sizes, one run each
 MAX_EVALS = 1500        # per run
 SCREEN_EVALS = 300      # a short first run from each of several readings, best first
+CLEARANCE_COST = 100.0  # gray levels^2 per mm^2 short of the clearance: a wall to the images
+PRIOR_COST = 0.005      # gray levels^2 per mm^2 off the typical clearance: a tie-breaker only
+# Roll and pitch of an object standing as the rig's objects stand: cylinders and prisms on
+# end, rings on edge (the simulated placements' and the lab's).
+UPRIGHT = {'cylinder': (0.0, 0.0), 'ring': (math.pi / 2, 0.0), 'prism': (0.0, 0.0)}
 
 
 class FitError(ValueError):
     """The fit cannot read this placement (no object, or an object it does not know)."""
 
 
-def placement_params(scene: Scene) -> np.ndarray:
+def placement_params(scene: Scene, upright: bool = False) -> np.ndarray:
     """
     Return a placement as the fit moves it: position and sizes in mm, angles in 0.1 rad.
 
-    Position, the kind's sizes, then roll, pitch and (for rings and prisms, whose yaw is
-    seen) yaw: a reader reads the tilt too, a few hundredths of a radian off, and a ring
-    tilted that much is a different image (test_placement).
+    Position, the kind's sizes, then roll and pitch (unless ``upright``: the object stands
+    as :data:`UPRIGHT` says) and, for rings and prisms, whose yaw is seen, yaw. A reader
+    reads the tilt a few hundredths of a radian off, and a ring tilted that much is a
+    different image (test_placement): fit it, or know that the object stands upright.
     """
+    if scene.object not in UPRIGHT:
+        raise FitError(f'the placement fit reads cylinders, rings and prisms, not '
+                       f'{scene.object!r}')
     p, d = np.asarray(scene.position_m) * 1e3, scene.dims
     roll, pitch, yaw = (10 * v for v in scene.rpy_rad)
+    tilt = [] if upright else [roll, pitch]
     if scene.object == 'cylinder':
-        return np.r_[p, d['radius_m'] * 1e3, d['height_m'] * 1e3, roll, pitch]
+        return np.r_[p, d['radius_m'] * 1e3, d['height_m'] * 1e3, tilt]
     if scene.object == 'ring':
-        return np.r_[p, d['major_radius_m'] * 1e3, d['minor_radius_m'] * 1e3, roll, pitch, yaw]
-    if scene.object == 'prism':
-        return np.r_[p, d['width_m'] * 1e3, d['depth_m'] * 1e3, d['height_m'] * 1e3,
-                     d['skew_rad'] * 10, roll, pitch, yaw]
-    raise FitError(f'the placement fit reads cylinders, rings and prisms, not {scene.object!r}')
+        return np.r_[p, d['major_radius_m'] * 1e3, d['minor_radius_m'] * 1e3, tilt, yaw]
+    return np.r_[p, d['width_m'] * 1e3, d['depth_m'] * 1e3, d['height_m'] * 1e3,
+                 d['skew_rad'] * 10, tilt, yaw]
 
 
-def placement_scene(template: Scene, params) -> Scene:
+def placement_scene(template: Scene, params, upright: bool = False) -> Scene:
     """Undo :func:`placement_params` (kind, id, a cylinder's yaw from ``template``)."""
     t = np.asarray(params, dtype=float)
     pos = tuple(float(v) for v in t[:3] * 1e-3)
     yaw = template.rpy_rad[2]
-    if template.object == 'cylinder':
-        dims, (roll, pitch) = {'radius_m': t[3] * 1e-3, 'height_m': t[4] * 1e-3}, t[5:7] / 10
-    elif template.object == 'ring':
-        dims = {'major_radius_m': t[3] * 1e-3, 'minor_radius_m': t[4] * 1e-3}
-        roll, pitch, yaw = t[5:8] / 10
+    sizes = {'cylinder': ('radius_m', 'height_m'), 'ring': ('major_radius_m', 'minor_radius_m'),
+             'prism': ('width_m', 'depth_m', 'height_m', 'skew_rad')}[template.object]
+    dims = {k: float(v) * (0.1 if k == 'skew_rad' else 1e-3)
+            for k, v in zip(sizes, t[3:3 + len(sizes)])}
+    rest = t[3 + len(sizes):] / 10
+    if upright:
+        roll, pitch = UPRIGHT[template.object]
     else:
-        dims = {'width_m': t[3] * 1e-3, 'depth_m': t[4] * 1e-3, 'height_m': t[5] * 1e-3,
-                'skew_rad': t[6] / 10}
-        roll, pitch, yaw = t[7:10] / 10
+        (roll, pitch), rest = rest[:2], rest[2:]
+    if template.object != 'cylinder':
+        yaw = rest[0]
     return replace(template, position_m=pos, rpy_rad=(float(roll), float(pitch), float(yaw)),
-                   dims={k: float(v) for k, v in dims.items()})
+                   dims=dims)
 
 
 def twin(scene: Scene) -> Scene:
@@ -118,11 +128,25 @@ class FitResult:
 
 
 class PlacementFit:
-    """Renders rest scenes of one rig and fits placements to rest images."""
+    """
+    Renders rest scenes of one rig and fits placements to rest images.
 
-    def __init__(self, cfg: RigConfig, views, size: int = 64, supersample: int = 3):
+    ``upright``: the objects stand as :data:`UPRIGHT` says (two numbers fewer to fit, and
+    no tilt traded for position). ``min_clearance_m``: the object keeps at least this
+    from the robot at rest; the rest images show the robot undisturbed, so it is not
+    inside the object, whatever a view that cannot see the object's depth allows.
+    ``max_starts``: restarts at most while the match is not good (GOOD_MSE).
+    """
+
+    def __init__(self, cfg: RigConfig, views, size: int = 64, supersample: int = 3,
+                 upright: bool = True, min_clearance_m: float = 0.0,
+                 max_starts: int = MAX_STARTS, typical_clearance_m: float | None = None,
+                 prior_cost: float = PRIOR_COST):
         self.rig = SimRig(cfg)
         self.views, self.size, self.ss = list(views), int(size), int(supersample)
+        self.upright, self.min_clearance_m = bool(upright), float(min_clearance_m)
+        self.max_starts = max(MIN_STARTS, int(max_starts))
+        self.typical_clearance_m, self.prior_cost = typical_clearance_m, float(prior_cost)
         self.rig.set_scene(None)
         self.rest = self.rig.solve([0.0] * len(cfg.chambers))
         self.grids = []
@@ -137,6 +161,11 @@ class PlacementFit:
         return np.stack([render_view(cam, self.rest.backbone_m, self.rest.radii_m, obstacles,
                                      grid, gray=True).astype(np.float32)
                          .reshape(s, k, s, k).mean(axis=(1, 3)) for cam, grid in self.grids])
+
+    def clearance(self, scene: Scene) -> float:
+        """Return the object's least distance to the robot's surface at rest (m; < 0: inside)."""
+        d, _ = obstacle_from_scene(scene).sdf(self.rest.backbone_m)
+        return float(np.min(d - self.rest.radii_m))
 
     def mse(self, scene: Scene, images) -> float:
         """Mean squared gray-level error of ``scene``'s rendering against rest images."""
@@ -157,28 +186,36 @@ class PlacementFit:
 
         ``reading``: where the object is thought to be (kind, and a first guess within
         a millimetre or two). Restarts around it until two are done and the match is
-        good (GOOD_MSE), six at most; a prism first from the best of its eight
+        good (GOOD_MSE), ``max_starts`` at most; a prism first from the best of its eight
         :func:`readings` after a short run from each (a reader may read its half turn,
         lean or width for depth wrong).
         """
         img = self._images(images)
-        x_read = placement_params(reading)
+        up = self.upright
+        x_read = placement_params(reading, up)
         rng = np.random.default_rng(seed)
         evals = [0]
 
         def cost(t):
             evals[0] += 1
             try:
-                return float(((self.render(placement_scene(reading, t)) - img) ** 2).mean())
+                scene = placement_scene(reading, t, up)
+                err = float(((self.render(scene) - img) ** 2).mean())
+                c = self.clearance(scene)
             except (SceneError, ValueError):
                 return 1e9                      # impossible sizes: far from any match
+            inside = max(0.0, self.min_clearance_m - c) * 1e3
+            err += CLEARANCE_COST * inside ** 2
+            if self.typical_clearance_m is not None:
+                err += self.prior_cost * ((c - self.typical_clearance_m) * 1e3) ** 2
+            return err
 
-        firsts = [placement_params(r) for r in readings(reading)]
+        firsts = [placement_params(r, up) for r in readings(reading)]
         if len(firsts) > 1:                 # screen them: a short run each, best first
             screened = [self._run(cost, x, SCALES[0], SCREEN_EVALS) for x in firsts]
             firsts = [x for x, _ in sorted(screened, key=lambda r: r[1])]
         best_x, best_f, starts = x_read, cost(x_read), 0
-        while starts < MAX_STARTS and (starts < MIN_STARTS or best_f >= GOOD_MSE):
+        while starts < self.max_starts and (starts < MIN_STARTS or best_f >= GOOD_MSE):
             x = firsts[starts] if starts < len(firsts) else \
                 x_read + rng.normal(0.0, START_SPREAD, x_read.shape)
             fx = cost(x)
@@ -189,7 +226,8 @@ class PlacementFit:
             starts += 1
             if fx < best_f:
                 best_x, best_f = x, fx
-        return FitResult(placement_scene(reading, best_x), best_f, evals[0], starts)
+        scene = placement_scene(reading, best_x, up)
+        return FitResult(scene, self.mse(scene, img), evals[0], starts)
 
     @staticmethod
     def _run(cost, x, scale: float, evals: int) -> tuple[np.ndarray, float]:
