@@ -208,7 +208,8 @@ def test_missing_or_corrupt_model_fails_at_start_naming_the_file(
         InferenceNode(parameter_overrides=[Parameter('model', value=str(bad))])
 
 
-def test_the_placement_path_serves_what_it_predicts_offline(ros, trained_checkpoint, tmp_path):
+def test_the_placement_path_serves_what_it_predicts_offline(ros, trained_checkpoint, tmp_path,
+                                                            monkeypatch):
     """With ``placement_head``: the tube model draws the head's robot for the fitted placement."""
     from softshape_ros.data import load_dataset
     from softshape_ros.demo.pipeline import PRETRAINED
@@ -238,6 +239,27 @@ def test_the_placement_path_serves_what_it_predicts_offline(ros, trained_checkpo
     want = node.core.predictor.predict(initial, pressures)
     for i, v in enumerate(('main', 'side')):
         np.testing.assert_array_equal(image_to_numpy(probe.predicted[v][0]), want[i, 0])
+    assert node.placement_source() == 'fitted to rest images'
+    # Told to take the placement /rig/scene records, from the next scene on it fits nothing.
+    node.set_parameters([Parameter('placement_from_scene', value=True)])
+    monkeypatch.setattr(node.placement.fit, 'fit', lambda *a, **k: pytest.fail('fitted'))
+    known = Scene(id=4, object='prism', position_m=[0.0, -0.027, 0.025], rpy_rad=[0, 0, -1.6],
+                  dims={'width_m': 0.01, 'depth_m': 0.01, 'height_m': 0.05, 'skew_rad': 0.1})
+    show_scene(ros, probe, node, known, rest_ns + 1)
+    assert node.placement.placement(node.core.initial()) == known
+    assert node.placement_source() == 'from /rig/scene'
+    probe.command.publish(Float64MultiArray(data=pressures))
+    ros.wait_for(lambda: probe.n_predicted() >= 2, timeout=60, what='predictions, told')
+    initial = np.stack([preprocess(probe.camera[v][rest_ns + 1], cfg.cameras[v].crop_px, 64,
+                                   gray=True) for v in ('main', 'side')])
+    want = node.core.predictor.predict(initial, pressures)
+    for i, v in enumerate(('main', 'side')):
+        np.testing.assert_array_equal(image_to_numpy(probe.predicted[v][-1]), want[i, 0])
+    # An object the head does not know: the placement is fitted again, and the log says so.
+    probe.scene.publish(String(data=Scene(id=5, object='sphere', position_m=[0.0, 0.03, 0.02],
+                                          dims={'radius_m': 0.01}).to_json()))
+    ros.wait_for(lambda: node.scene_id == 5, what='inference to see the sphere')
+    assert node.placement.known is None
     # A head made for other cameras is refused at start, naming the file.
     import dataclasses
     moved = dataclasses.replace(head, projection=type(head.projection)(

@@ -8,7 +8,9 @@ draws over its own background, object and visibility. Same inputs and outputs as
 :class:`~softshape_ros.model.predictor.Predictor`, so the inference node serves it as it
 serves a checkpoint (its ``placement_head`` parameter).
 
-Simulated rig only as it stands: the fit reads images with the simulator's renderer.
+Simulated rig only as it stands: the fit reads images with the simulator's renderer. Told
+the placement (:meth:`PlacementPredictor.know`: the session's record of it, ``/rig/scene``),
+it skips reading and fitting.
 """
 
 from __future__ import annotations
@@ -47,6 +49,21 @@ class PlacementPredictor(Predictor):
         self.shape = shape
         self.fit = PlacementFit(cfg, self.views, self.image_size)
         self._placements: OrderedDict[bytes, Scene] = OrderedDict()
+        self.known: Scene | None = None
+
+    def know(self, scene: Scene | None) -> None:
+        """
+        Take ``scene`` as the placement of the rest images from now on, instead of fitting.
+
+        Where a session records what it placed (``/rig/scene``), that is the placement the
+        head is told; ``None`` fits again. PlacementHeadError (and nothing changed) for an
+        object the head does not know.
+        """
+        from softshape_ros.sim.placement_fit import UPRIGHT
+        if scene is not None and scene.object not in UPRIGHT:
+            raise PlacementHeadError(f'the placement head predicts for {sorted(UPRIGHT)}, '
+                                     f'not {scene.object!r} (scene {scene.id})')
+        self.known = scene
 
     @classmethod
     def from_paths(cls, checkpoint, head, cfg: RigConfig) -> 'PlacementPredictor':
@@ -58,6 +75,8 @@ class PlacementPredictor(Predictor):
     def placement(self, initial: np.ndarray) -> Scene:
         """Read and fit the placement of V x C x S x S uint8 rest images (cached per image set)."""
         imgs = self._images(initial, batch=False)
+        if self.known is not None:
+            return self.known
         key = hashlib.sha1(imgs.tobytes()).digest()
         if key in self._placements:
             self._placements.move_to_end(key)

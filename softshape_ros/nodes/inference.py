@@ -35,6 +35,9 @@ PARAMETERS = [
     Param('model', '', 'checkpoint folder (model.safetensors + config.json); required'),
     Param('placement_head', '', 'placement head folder (softshape placement-head): draw what '
           'it predicts for the placement fitted to the rest images (simulated rig only)'),
+    Param('placement_from_scene', False, 'with placement_head: tell the head the placement '
+          '/rig/scene records instead of fitting one to the rest images (from the next scene)',
+          live=True),
     Param('threads', 1, 'torch CPU threads for the model', (1, 256)),
     Param('overlay', True, 'also publish /softshape/predicted/{view}/overlay', live=True),
     Param('reliable_images', True, 'camera subscriptions reliable (false for best-effort '
@@ -62,9 +65,11 @@ class InferenceNode(Node):
                              '(ros2 run softshape_ros inference --ros-args -p model:=PATH)')
         import torch
         torch.set_num_threads(max(1, threads))
+        self.placement = None               # the placement path's predictor, if served
         if p.placement_head:
             from softshape_ros.experiments.placement_predictor import PlacementPredictor
-            predictor = PlacementPredictor.from_paths(model_path, p.placement_head, self.cfg)
+            predictor = self.placement = PlacementPredictor.from_paths(
+                model_path, p.placement_head, self.cfg)
         else:
             from softshape_ros.model import Predictor
             predictor = Predictor.from_checkpoint(model_path)
@@ -117,6 +122,13 @@ class InferenceNode(Node):
         self.core.clear_initial()
         self.awaiting_rest = True
         self.scene_id = scene.id
+        if self.placement is not None:
+            from softshape_ros.experiments.placement_head import PlacementHeadError
+            try:
+                self.placement.know(scene if self.params.placement_from_scene else None)
+            except PlacementHeadError as exc:
+                self.placement.know(None)
+                self.get_logger().warn(f'{exc}: fitting its placement to the rest images')
         self.get_logger().info(f'scene {scene.id}: waiting for its rest images')
 
     def on_sample(self, msg: String) -> None:
@@ -231,14 +243,22 @@ class InferenceNode(Node):
         if not self.worker.is_alive():
             level, message = ERROR, 'inference worker died'
         # 'scene': the placement its initial images are (to be) of; '' before any /rig/scene.
+        # 'placement': where the placement head's placement comes from ('' without one).
         # 'camera_publishers': the fewest cameras matched on any view's image topic; a rest
         # snap taken before it is 1 reaches the camera's other readers but not this one.
         values = dict(self.counts, superseded=self.slot.superseded,
                       scene='' if self.scene_id is None else str(self.scene_id),
+                      placement=self.placement_source(),
                       camera_publishers=min(s.get_publisher_count() for s in self.camera_subs),
                       latency_ms_median=f'{np.median(lat):.2f}',
                       latency_ms_p99=f'{np.percentile(lat, 99):.2f}', last_error=self.last_error)
         return fill(stat, level, message, values)
+
+    def placement_source(self) -> str:
+        """Say where the placement the head is told comes from ('' without the head)."""
+        if self.placement is None:
+            return ''
+        return 'from /rig/scene' if self.placement.known is not None else 'fitted to rest images'
 
     def on_shutdown(self) -> None:
         self.running = False
