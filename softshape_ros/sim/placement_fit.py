@@ -32,7 +32,6 @@ SCALES = (1.0, 0.5, 0.25, 0.1)      # Nelder-Mead simplex sizes, one run each
 MAX_EVALS = 1500        # per run
 SCREEN_EVALS = 300      # a short first run from each of several readings, best first
 CLEARANCE_COST = 100.0  # gray levels^2 per mm^2 short of the clearance: a wall to the images
-PRIOR_COST = 0.005      # gray levels^2 per mm^2 off the typical clearance: a tie-breaker only
 # Roll and pitch of an object standing as the rig's objects stand: cylinders and prisms on
 # end, rings on edge (the simulated placements' and the lab's).
 UPRIGHT = {'cylinder': (0.0, 0.0), 'ring': (math.pi / 2, 0.0), 'prism': (0.0, 0.0)}
@@ -140,13 +139,11 @@ class PlacementFit:
 
     def __init__(self, cfg: RigConfig, views, size: int = 64, supersample: int = 3,
                  upright: bool = True, min_clearance_m: float = 0.0,
-                 max_starts: int = MAX_STARTS, typical_clearance_m: float | None = None,
-                 prior_cost: float = PRIOR_COST):
+                 max_starts: int = MAX_STARTS):
         self.rig = SimRig(cfg)
         self.views, self.size, self.ss = list(views), int(size), int(supersample)
         self.upright, self.min_clearance_m = bool(upright), float(min_clearance_m)
         self.max_starts = max(MIN_STARTS, int(max_starts))
-        self.typical_clearance_m, self.prior_cost = typical_clearance_m, float(prior_cost)
         self.rig.set_scene(None)
         self.rest = self.rig.solve([0.0] * len(cfg.chambers))
         self.grids = []
@@ -205,10 +202,7 @@ class PlacementFit:
             except (SceneError, ValueError):
                 return 1e9                      # impossible sizes: far from any match
             inside = max(0.0, self.min_clearance_m - c) * 1e3
-            err += CLEARANCE_COST * inside ** 2
-            if self.typical_clearance_m is not None:
-                err += self.prior_cost * ((c - self.typical_clearance_m) * 1e3) ** 2
-            return err
+            return err + CLEARANCE_COST * inside ** 2
 
         firsts = [placement_params(r, up) for r in readings(reading)]
         if len(firsts) > 1:                 # screen them: a short run each, best first
