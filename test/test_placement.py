@@ -12,7 +12,8 @@ from softshape_ros.config import load_rig_config
 from softshape_ros.data import load_dataset
 from softshape_ros.model.data import placements, scene_from_vector, scene_vector, shape_tensors
 from softshape_ros.experiments.placement_head import (
-    PlacementHeadError, ShapePredictor, ShapeProjection, folded_inputs, train_shape_predictor)
+    PlacementHeadError, ShapePredictor, ShapeProjection, folded_inputs, read_facing_out,
+    train_shape_predictor)
 from softshape_ros.scene import Scene
 from softshape_ros.sim.generate import generate, make_plan
 from softshape_ros.sim.placement_fit import (
@@ -109,6 +110,11 @@ def test_a_prism_and_its_twin_are_one_input_to_the_head():
     x, _ = folded_inputs(sym, [prism, twin(prism), flipped(prism)], p, [5e4] * 6)
     torch.testing.assert_close(x[1], x[0])
     assert not torch.allclose(x[2], x[0])        # leaning the other way: another object
+    # A reader gives yaw up to a half turn, its lean meant facing out: turned, lean kept.
+    read = replace(prism, rpy_rad=(0.0, 0.0, az - math.pi))
+    assert read_facing_out(read, sym.base).rpy_rad[2] == pytest.approx(az)
+    assert read_facing_out(read, sym.base).dims == prism.dims
+    assert read_facing_out(prism, sym.base) is prism
 
 
 def test_the_projection_goes_from_the_record_to_the_backbone_and_back(stereo):

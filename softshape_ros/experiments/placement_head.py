@@ -20,7 +20,7 @@ import json
 import math
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -85,6 +85,22 @@ def facing_out(scene: Scene, axis_xy) -> Scene:
         return scene
     out = math.atan2(scene.position_m[1] - axis_xy[1], scene.position_m[0] - axis_xy[0])
     return twin(scene) if math.cos(scene.rpy_rad[2] - out) < 0 else scene
+
+
+def read_facing_out(reading: Scene, axis_xy) -> Scene:
+    """
+    Turn a reader's prism half a turn if it faces in, its lean kept.
+
+    A reader learns the lean on placements drawn facing out but gives yaw only up to a
+    half turn (``model.data.scene_from_vector``): its lean belongs to the yaw facing out.
+    """
+    if reading.object != 'prism':
+        return reading
+    out = math.atan2(reading.position_m[1] - axis_xy[1], reading.position_m[0] - axis_xy[0])
+    r, p, y = reading.rpy_rad
+    if math.cos(y - out) >= 0:
+        return reading
+    return replace(reading, rpy_rad=(r, p, math.remainder(y + math.pi, 2 * math.pi)))
 
 
 def folded_inputs(sym: RigSymmetry, scenes, pressures_pa, max_pressure_pa):

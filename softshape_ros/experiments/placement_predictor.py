@@ -24,7 +24,8 @@ import torch
 from softshape_ros.config import RigConfig
 from softshape_ros.model.checkpoint import load_checkpoint
 from softshape_ros.model.data import scene_from_vector
-from softshape_ros.experiments.placement_head import PlacementHeadError, ShapePredictor
+from softshape_ros.experiments.placement_head import (PlacementHeadError, ShapePredictor,
+                                                      read_facing_out)
 from softshape_ros.model.predictor import Predictor
 from softshape_ros.scene import Scene
 
@@ -88,7 +89,8 @@ class PlacementPredictor(Predictor):
         if described is None:
             raise PlacementHeadError('the checkpoint does not describe placements (trained '
                                      'without the scene loss): nothing to start the fit from')
-        scene = self.fit.fit(imgs, scene_from_vector(described[0].numpy())).scene
+        reading = read_facing_out(scene_from_vector(described[0].numpy()), self.shape.sym.base)
+        scene = self.fit.fit(imgs, reading).scene
         self._placements[key] = scene
         if len(self._placements) > CACHED_PLACEMENTS:
             self._placements.popitem(last=False)

@@ -26,7 +26,7 @@ from softshape_ros.model.checkpoint import load_checkpoint
 from softshape_ros.model.data import placements, scene_from_vector, to_tensors, touching_flags
 from softshape_ros.model.metrics import RobotSilhouette, evaluate_arrays
 from softshape_ros.experiments.placement_head import (ShapePredictor, drawing_offset,
-                                                      train_shape_predictor)
+                                                      read_facing_out, train_shape_predictor)
 
 OFFSET_ROWS = 4000          # training rows the drawing offset is averaged over (free ones)
 _FIT = {}
@@ -102,7 +102,8 @@ def run(train, test, checkpoint, out, steps: int = 20000, workers: int = 2,
     ini1, _, p1 = to_tensors(te, [first[int(s)] for s in ids], pmax)
     with torch.inference_mode():
         described = model(ini1, p1, parts='keypoints')[2]
-    read = {int(s): scene_from_vector(d, int(s)) for s, d in zip(ids, described.numpy())}
+    read = {int(s): read_facing_out(scene_from_vector(d, int(s)), head.sym.base)
+            for s, d in zip(ids, described.numpy())}
     jobs = [(int(s), np.asarray(te.initial[first[int(s)]]), read[int(s)]) for s in ids]
     t0 = time.monotonic()
     fitted = {}
