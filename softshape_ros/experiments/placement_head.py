@@ -72,6 +72,12 @@ class ShapeProjection:
                          for cam, zb in zip(self.cameras, self.z_base)], 1).astype(np.float32)
 
 
+def _faces_in(scene: Scene, axis_xy) -> bool:
+    """Whether a prism's x (the way it leans) points towards the robot's axis."""
+    out = math.atan2(scene.position_m[1] - axis_xy[1], scene.position_m[0] - axis_xy[0])
+    return scene.object == 'prism' and math.cos(scene.rpy_rad[2] - out) < 0
+
+
 def facing_out(scene: Scene, axis_xy) -> Scene:
     """
     Describe a prism with its x (the way it leans) pointing away from the robot's axis.
@@ -81,10 +87,7 @@ def facing_out(scene: Scene, axis_xy) -> Scene:
     Placements are drawn facing out (``sim/generate.random_scene``), so the head learns that
     description; a fit or a person may give the other (docs/model.md).
     """
-    if scene.object != 'prism':
-        return scene
-    out = math.atan2(scene.position_m[1] - axis_xy[1], scene.position_m[0] - axis_xy[0])
-    return twin(scene) if math.cos(scene.rpy_rad[2] - out) < 0 else scene
+    return twin(scene) if _faces_in(scene, axis_xy) else scene
 
 
 def read_facing_out(reading: Scene, axis_xy) -> Scene:
@@ -94,12 +97,9 @@ def read_facing_out(reading: Scene, axis_xy) -> Scene:
     A reader learns the lean on placements drawn facing out but gives yaw only up to a
     half turn (``model.data.scene_from_vector``): its lean belongs to the yaw facing out.
     """
-    if reading.object != 'prism':
+    if not _faces_in(reading, axis_xy):
         return reading
-    out = math.atan2(reading.position_m[1] - axis_xy[1], reading.position_m[0] - axis_xy[0])
     r, p, y = reading.rpy_rad
-    if math.cos(y - out) >= 0:
-        return reading
     return replace(reading, rpy_rad=(r, p, math.remainder(y + math.pi, 2 * math.pi)))
 
 

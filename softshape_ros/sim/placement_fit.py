@@ -20,7 +20,7 @@ import numpy as np
 from scipy.optimize import minimize
 
 from softshape_ros.config import RigConfig
-from softshape_ros.scene import Scene, SceneError
+from softshape_ros.scene import OBJECT_DIMS, Scene, SceneError
 from softshape_ros.sim.objects import obstacle_from_scene
 from softshape_ros.sim.render import render_view
 from softshape_ros.sim.rig import SimRig
@@ -55,13 +55,9 @@ def placement_params(scene: Scene, upright: bool = False) -> np.ndarray:
                        f'{scene.object!r}')
     p, d = np.asarray(scene.position_m) * 1e3, scene.dims
     roll, pitch, yaw = (10 * v for v in scene.rpy_rad)
-    tilt = [] if upright else [roll, pitch]
-    if scene.object == 'cylinder':
-        return np.r_[p, d['radius_m'] * 1e3, d['height_m'] * 1e3, tilt]
-    if scene.object == 'ring':
-        return np.r_[p, d['major_radius_m'] * 1e3, d['minor_radius_m'] * 1e3, tilt, yaw]
-    return np.r_[p, d['width_m'] * 1e3, d['depth_m'] * 1e3, d['height_m'] * 1e3,
-                 d['skew_rad'] * 10, tilt, yaw]
+    sizes = [d[k] * (10 if k == 'skew_rad' else 1e3) for k in OBJECT_DIMS[scene.object]]
+    return np.r_[p, sizes, [] if upright else [roll, pitch],
+                 [] if scene.object == 'cylinder' else [yaw]]
 
 
 def placement_scene(template: Scene, params, upright: bool = False) -> Scene:
@@ -69,8 +65,7 @@ def placement_scene(template: Scene, params, upright: bool = False) -> Scene:
     t = np.asarray(params, dtype=float)
     pos = tuple(float(v) for v in t[:3] * 1e-3)
     yaw = template.rpy_rad[2]
-    sizes = {'cylinder': ('radius_m', 'height_m'), 'ring': ('major_radius_m', 'minor_radius_m'),
-             'prism': ('width_m', 'depth_m', 'height_m', 'skew_rad')}[template.object]
+    sizes = OBJECT_DIMS[template.object]
     dims = {k: float(v) * (0.1 if k == 'skew_rad' else 1e-3)
             for k, v in zip(sizes, t[3:3 + len(sizes)])}
     rest = t[3 + len(sizes):] / 10
