@@ -112,9 +112,9 @@ def test_a_prism_and_its_twin_are_one_input_to_the_head():
     assert not torch.allclose(x[2], x[0])        # leaning the other way: another object
     # A reader gives yaw up to a half turn, its lean meant facing out: turned, lean kept.
     read = replace(prism, rpy_rad=(0.0, 0.0, az - math.pi))
-    assert read_facing_out(read, sym.base).rpy_rad[2] == pytest.approx(az)
-    assert read_facing_out(read, sym.base).dims == prism.dims
-    assert read_facing_out(prism, sym.base) is prism
+    assert read_facing_out(read, sym).rpy_rad[2] == pytest.approx(az)
+    assert read_facing_out(read, sym).dims == prism.dims
+    assert read_facing_out(prism, sym) is prism
 
 
 def test_the_projection_goes_from_the_record_to_the_backbone_and_back(stereo):

@@ -72,13 +72,13 @@ class ShapeProjection:
                          for cam, zb in zip(self.cameras, self.z_base)], 1).astype(np.float32)
 
 
-def _faces_in(scene: Scene, axis_xy) -> bool:
+def _faces_in(scene: Scene, sym: RigSymmetry) -> bool:
     """Whether a prism's x (the way it leans) points towards the robot's axis."""
-    out = math.atan2(scene.position_m[1] - axis_xy[1], scene.position_m[0] - axis_xy[0])
-    return scene.object == 'prism' and math.cos(scene.rpy_rad[2] - out) < 0
+    return scene.object == 'prism' and \
+        math.cos(scene.rpy_rad[2] - sym.azimuth(scene.position_m)) < 0
 
 
-def facing_out(scene: Scene, axis_xy) -> Scene:
+def facing_out(scene: Scene, sym: RigSymmetry) -> Scene:
     """
     Describe a prism with its x (the way it leans) pointing away from the robot's axis.
 
@@ -87,17 +87,17 @@ def facing_out(scene: Scene, axis_xy) -> Scene:
     Placements are drawn facing out (``sim/generate.random_scene``), so the head learns that
     description; a fit or a person may give the other (docs/model.md).
     """
-    return twin(scene) if _faces_in(scene, axis_xy) else scene
+    return twin(scene) if _faces_in(scene, sym) else scene
 
 
-def read_facing_out(reading: Scene, axis_xy) -> Scene:
+def read_facing_out(reading: Scene, sym: RigSymmetry) -> Scene:
     """
     Turn a reader's prism half a turn if it faces in, its lean kept.
 
     A reader learns the lean on placements drawn facing out but gives yaw only up to a
     half turn (``model.data.scene_from_vector``): its lean belongs to the yaw facing out.
     """
-    if not _faces_in(reading, axis_xy):
+    if not _faces_in(reading, sym):
         return reading
     r, p, y = reading.rpy_rad
     return replace(reading, rpy_rad=(r, p, math.remainder(y + math.pi, 2 * math.pi)))
@@ -106,7 +106,7 @@ def read_facing_out(reading: Scene, axis_xy) -> Scene:
 def folded_inputs(sym: RigSymmetry, scenes, pressures_pa, max_pressure_pa):
     """Placements + (N, 6) Pa -> (N, 17 + 6) head inputs in the fold, and each row's Fold."""
     pmax = np.asarray(max_pressure_pa, dtype=float)
-    scenes = [facing_out(sc, sym.base[:2]) for sc in scenes]
+    scenes = [facing_out(sc, sym) for sc in scenes]
     folds = [sym.fold_of(sc.position_m) for sc in scenes]
     x = [scene_vector(f.scene(sc)) + list(f.pressures(p) / pmax)
          for f, sc, p in zip(folds, scenes, np.asarray(pressures_pa, dtype=float))]

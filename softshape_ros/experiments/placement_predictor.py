@@ -26,7 +26,7 @@ from softshape_ros.model.checkpoint import load_checkpoint
 from softshape_ros.model.data import scene_from_vector
 from softshape_ros.experiments.placement_head import (PlacementHeadError, ShapePredictor,
                                                       read_facing_out)
-from softshape_ros.model.predictor import Predictor
+from softshape_ros.model.predictor import Predictor, to_uint8
 from softshape_ros.scene import Scene
 
 CACHED_PLACEMENTS = 8
@@ -89,7 +89,7 @@ class PlacementPredictor(Predictor):
         if described is None:
             raise PlacementHeadError('the checkpoint does not describe placements (trained '
                                      'without the scene loss): nothing to start the fit from')
-        reading = read_facing_out(scene_from_vector(described[0].numpy()), self.shape.sym.base)
+        reading = read_facing_out(scene_from_vector(described[0].numpy()), self.shape.sym)
         scene = self.fit.fit(imgs, reading).scene
         self._placements[key] = scene
         if len(self._placements) > CACHED_PLACEMENTS:
@@ -105,4 +105,4 @@ class PlacementPredictor(Predictor):
         scenes = [self.placement(i) for i in imgs]
         kp = self.shape.keypoints(scenes, p * self.max_pressure_pa)      # B x V x K x 4
         y = self.model(x, torch.from_numpy(p.astype(np.float32)), truth=kp, parts=True).teacher
-        return self._to_uint8(y, imgs.shape)
+        return to_uint8(y, imgs.shape)

@@ -25,6 +25,7 @@ from softshape_ros.data.dataset import load_dataset
 from softshape_ros.model.checkpoint import load_checkpoint
 from softshape_ros.model.data import placements, scene_from_vector, to_tensors, touching_flags
 from softshape_ros.model.metrics import RobotSilhouette, evaluate_arrays
+from softshape_ros.model.predictor import to_uint8
 from softshape_ros.experiments.placement_head import (ShapePredictor, drawing_offset,
                                                       read_facing_out, train_shape_predictor)
 
@@ -49,7 +50,7 @@ def _draw(model, ini, p, kp, batch: int = 250) -> np.ndarray:
         out = [model(ini[i:i + batch], p[i:i + batch], truth=None if kp is None else
                      kp[i:i + batch], parts=True) for i in range(0, len(ini), batch)]
     img = torch.cat([o.image if kp is None else o.teacher for o in out])
-    return torch.clamp(img * 255 + 0.5, 0, 255).to(torch.uint8).numpy()
+    return to_uint8(img)
 
 
 def _errors(read: dict, truth: dict) -> dict:
@@ -102,7 +103,7 @@ def run(train, test, checkpoint, out, steps: int = 20000, workers: int = 2,
     ini1, _, p1 = to_tensors(te, [first[int(s)] for s in ids], pmax)
     with torch.inference_mode():
         described = model(ini1, p1, parts='keypoints')[2]
-    read = {int(s): read_facing_out(scene_from_vector(d, int(s)), head.sym.base)
+    read = {int(s): read_facing_out(scene_from_vector(d, int(s)), head.sym)
             for s, d in zip(ids, described.numpy())}
     jobs = [(int(s), np.asarray(te.initial[first[int(s)]]), read[int(s)]) for s in ids]
     t0 = time.monotonic()

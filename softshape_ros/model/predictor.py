@@ -15,6 +15,12 @@ from softshape_ros.pressure import check_command
 from softshape_ros.model.checkpoint import load_checkpoint
 
 
+def to_uint8(y: torch.Tensor, shape=None) -> np.ndarray:
+    """Round a network's 0..1 images to uint8 gray levels (reshaped to ``shape`` if given)."""
+    out = torch.clamp(y * 255 + 0.5, 0, 255).to(torch.uint8).numpy()
+    return out if shape is None else out.reshape(shape)
+
+
 class Predictor:
     """A loaded forward model with the shapes and units it expects."""
 
@@ -67,15 +73,11 @@ class Predictor:
         x = torch.from_numpy(imgs.reshape(b, v * c, s, s).astype(np.float32) / 255)
         return imgs, p, x
 
-    @staticmethod
-    def _to_uint8(y: torch.Tensor, shape) -> np.ndarray:
-        return torch.clamp(y * 255 + 0.5, 0, 255).to(torch.uint8).numpy().reshape(shape)
-
     @torch.inference_mode()
     def predict_batch(self, initial_b, pressures_b) -> np.ndarray:
         """B x V x C x S x S uint8 + B x 6 Pa -> B x V x C x S x S uint8."""
         imgs, p, x = self._batch(initial_b, pressures_b)
-        return self._to_uint8(self.model(x, torch.from_numpy(p.astype(np.float32))), imgs.shape)
+        return to_uint8(self.model(x, torch.from_numpy(p.astype(np.float32))), imgs.shape)
 
     def predict(self, initial, pressures_pa) -> np.ndarray:
         """V x C x S x S uint8 + 6 pressures (Pa) -> V x C x S x S uint8."""
