@@ -240,6 +240,10 @@ def test_the_placement_path_serves_what_it_predicts_offline(ros, trained_checkpo
     for i, v in enumerate(('main', 'side')):
         np.testing.assert_array_equal(image_to_numpy(probe.predicted[v][0]), want[i, 0])
     assert node.placement_source() == 'fitted to rest images'
+    assert node.placement.alone == ''
+    node.placement.alone = 'hidden in side'     # as for an object behind the robot
+    assert node.placement_source() == 'fitted to rest images; hidden in side: tube model alone'
+    node.placement.alone = ''
     # Told to take the placement /rig/scene records, from the next scene on it fits nothing.
     node.set_parameters([Parameter('placement_from_scene', value=True)])
     monkeypatch.setattr(node.placement.fit, 'fit', lambda *a, **k: pytest.fail('fitted'))

@@ -168,6 +168,13 @@ def test_the_head_learns_in_the_fold_and_turns_with_the_rig(stereo, head48, tmp_
     saved = head.save(tmp_path / 'head')
     again = ShapePredictor.load(saved, CFG)
     torch.testing.assert_close(again.keypoints([sc], [p]), head.keypoints([sc], [p]))
+    # It knows how far out it learned: each kind's farthest training placement.
+    fit = PlacementFit(CFG, VIEWS)
+    for kind in ('cylinder', 'ring'):       # gaps up to 10 mm, their clearance
+        learnt = max(fit.clearance(scenes[int(i)]) for i in np.unique(ids[seen])
+                     if scenes[int(i)].object == kind)
+        assert again.reach_m[kind] == pytest.approx(learnt) and 0.005 < learnt < 0.0101
+    assert set(again.reach_m) == {'cylinder', 'ring', 'prism'}
     moved = replace(CFG, cameras=dict(CFG.cameras, side=replace(CFG.cameras['side'], fx=1300.0)))
     with pytest.raises(PlacementHeadError, match="camera 'side'"):
         ShapePredictor.load(saved, moved)
@@ -247,7 +254,62 @@ def test_the_placement_predictor_fits_once_per_scene_and_draws_the_heads_robot(
         PlacementPredictor(model, config, mono, CFG)
 
 
-def test_the_placement_head_command_trains_fits_and_scores_four_ways(stereo, tmp_path):
+def behind_robot(fit: PlacementFit, view: str, turn: float = 0.0) -> Scene:
+    """Stand a cylinder 2 mm behind the rest robot as ``view`` sees it (``turn``: about it)."""
+    axis = fit.rest.backbone_m[0, :2]                   # the rest robot hangs straight
+    u = axis - fit.rig.cameras[view].position[:2]
+    u = np.array([[math.cos(turn), -math.sin(turn)], [math.sin(turn), math.cos(turn)]]) @ (
+        u / np.linalg.norm(u))
+    radius = 0.006
+    xy = axis + (fit.rest.radii_m.max() + 0.002 + radius) * u
+    return Scene(id=1, object='cylinder', position_m=(*xy, 0.035),
+                 dims={'radius_m': radius, 'height_m': 0.04})
+
+
+def test_an_object_behind_the_robot_is_hidden_and_its_depth_is_not_in_the_images():
+    fit = PlacementFit(CFG, VIEWS)
+    hidden = behind_robot(fit, 'side')
+    assert fit.hidden_views(hidden) == ('side',)
+    assert fit.hidden_views(behind_robot(fit, 'main')) == ('main',)
+    assert fit.hidden_views(behind_robot(fit, 'side', turn=math.pi / 2)) == ()
+    # Slid 3 mm along the main camera's ray, grown as it recedes: the same rest images.
+    cam = fit.rig.cameras['main'].position
+    p = np.asarray(hidden.position_m)
+    k = 1 + 0.003 / np.linalg.norm(p - cam)
+    slid = replace(hidden, position_m=tuple(cam + (p - cam) * k),
+                   dims={n: v * k for n, v in hidden.dims.items()})
+    rest = fit.render(hidden)
+    assert fit.hidden_views(slid) == ('side',) and fit.mse(slid, rest) < 0.1
+    across = replace(hidden, position_m=tuple(p + [0.003, 0.0, 0.0]))
+    assert fit.mse(across, rest) > 1.0                  # where a view sees it, it is held
+
+
+def test_the_placement_predictor_draws_the_tube_models_own_bet_where_the_head_cannot_know(
+        head48):
+    from softshape_ros.demo.pipeline import PRETRAINED
+    from softshape_ros.model.checkpoint import load_checkpoint
+    from softshape_ros.model.predictor import Predictor
+    from softshape_ros.experiments.placement_predictor import PlacementPredictor
+    model, config = load_checkpoint(PRETRAINED)
+    pred = PlacementPredictor(model, config, head48[0], CFG)
+    scene = behind_robot(pred.fit, 'side')
+    rest = np.clip(np.rint(pred.fit.render(scene)), 0, 255).astype(np.uint8)[:, None]
+    initial = np.stack([rest, rest])
+    pressures = [[0.0, 90e3, 0.0, 0.0, 90e3, 0.0], [60e3, 0.0, 0.0, 30e3, 0.0, 0.0]]
+    out = pred.predict_batch(initial, pressures)
+    assert pred.alone == 'hidden in side'               # the fit found it behind the robot
+    alone = Predictor(model, config).predict_batch(initial, pressures)
+    np.testing.assert_array_equal(out, alone)
+    pred.know(scene)                                    # told where it is: the head draws
+    told = pred.predict_batch(initial, pressures)
+    assert pred.alone == '' and not np.array_equal(told, out)
+    # Farther out than any placement it learned from, the head is not asked either.
+    pred.shape = replace(pred.shape, reach_m={'cylinder': 0.0015})
+    np.testing.assert_array_equal(pred.predict_batch(initial, pressures), alone)
+    assert pred.alone == "2.0 mm clear, beyond the head's 1.5 mm"
+
+
+def test_the_placement_head_command_trains_fits_and_scores_five_ways(stereo, tmp_path):
     from softshape_ros.cli import main
     from softshape_ros.demo.pipeline import PRETRAINED
     out = tmp_path / 'study'
@@ -258,13 +320,17 @@ def test_the_placement_head_command_trains_fits_and_scores_four_ways(stereo, tmp
     assert res['test_placements'] == 1 and res['head']['steps'] == 20
     assert set(res['predictions']) == {'tube model alone', 'head, true placement',
                                        'head, read placement (unfitted)',
-                                       'head, fitted placement'}
+                                       'head, fitted placement', 'placement path'}
     for row in res['predictions'].values():
         iou = row['iou_all_touching_free']
         assert all(0.0 <= v <= 1.0 for v in iou if v == v)            # NaN: no such rows
     fits = json.loads((out / 'fitted_placements.json').read_text())
     (fit,) = fits.values()
     assert fit['fitted']['object'] == fit['truth']['object']
+    # The placement path is the fitted row where the object shows in both views.
+    assert fit['hidden'] == [] and res['fit']['hidden_placements'] == 0
+    assert res['fit']['tube_model_alone_placements'] == 0
+    assert res['predictions']['placement path'] == res['predictions']['head, fitted placement']
     assert ShapePredictor.load(out / 'head', CFG).head.keypoints == 16
     # Again from the saved head: nothing trained, the same fit.
     again = tmp_path / 'again'

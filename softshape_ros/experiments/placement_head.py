@@ -20,7 +20,7 @@ import json
 import math
 import os
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -143,6 +143,8 @@ class ShapePredictor:
     offset_px: np.ndarray             # (V, K, 4) added to the record: how the drawer draws
     max_pressure_pa: np.ndarray
     chambers: tuple = ()              # the chambers' names, in the pressures' order
+    reach_m: dict = field(default_factory=dict)     # kind -> farthest training placement
+    #                 from the rest robot's surface (m); beyond it the head extrapolates
 
     @torch.inference_mode()
     def keypoints(self, scenes, pressures_pa) -> torch.Tensor:
@@ -166,7 +168,7 @@ class ShapePredictor:
                'max_pressure_pa': self.max_pressure_pa.tolist(),
                'cameras': {v: cam_signature(c) for v, c in zip(self.projection.views,
                                                                self.projection.cameras)},
-               'chambers': list(self.chambers)}
+               'chambers': list(self.chambers), 'reach_m': self.reach_m}
         tmp = d / (CONFIG + '.tmp')
         tmp.write_text(json.dumps(cfg, indent=1))
         os.replace(tmp, d / CONFIG)
@@ -188,6 +190,10 @@ class ShapePredictor:
                             np.asarray(meta['offset_px'], np.float32),
                             np.asarray(meta['max_pressure_pa']), meta['keypoints'])
             cameras, chambers = dict(meta['cameras']), list(meta['chambers'])
+            reach = meta.get('reach_m', {})     # heads saved before stop 54 do not say
+            out.reach_m = {str(k): float(v) for k, v in reach.items()}
+            if not all(v > 0 for v in out.reach_m.values()):
+                raise ValueError(f'reach_m {reach!r}: not positive distances')
         except (KeyError, TypeError, ValueError) as e:
             raise PlacementHeadError(f'{d / CONFIG}: incomplete or malformed ({e!r})') from e
         for v, c in zip(out.projection.views, out.projection.cameras):
@@ -282,8 +288,20 @@ def train_shape_predictor(ds, cfg: RigConfig, views, steps: int = 20000, batch: 
         opt.step()
         sched.step()
     head.eval()
+    out.reach_m = training_reach(cfg, views, [table[int(s)] for s in set(ids.tolist())])
     return out, HeadReport(steps, time.monotonic() - t0, float(loss.detach()), len(x),
                            len(set(ids.tolist())))
+
+
+def training_reach(cfg: RigConfig, views, scenes) -> dict:
+    """Return each kind's largest clearance from the rest robot among ``scenes`` (m)."""
+    from softshape_ros.sim.placement_fit import UPRIGHT, PlacementFit
+    fit = PlacementFit(cfg, views)
+    reach: dict = {}
+    for sc in scenes:
+        if sc.object in UPRIGHT:
+            reach[sc.object] = max(reach.get(sc.object, 0.0), fit.clearance(sc))
+    return reach
 
 
 @torch.inference_mode()

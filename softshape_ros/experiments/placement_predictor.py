@@ -8,6 +8,13 @@ draws over its own background, object and visibility. Same inputs and outputs as
 :class:`~softshape_ros.model.predictor.Predictor`, so the inference node serves it as it
 serves a checkpoint (its ``placement_head`` parameter).
 
+An object one view shows only behind the robot (the fit's ``hidden`` views) has no depth
+in the rest images: any point of a ray some 10 mm long fits them, and the head would draw
+the robot confidently for one of them. The tube model, trained over such placements,
+draws its own prediction there, which spreads its bet (docs/model.md, "Where the images do
+not hold the placement"). So it does for a placement farther from the robot than any the
+head learned from (``ShapePredictor.reach_m``), where the head extrapolates.
+
 Simulated rig only as it stands: the fit reads images with the simulator's renderer. Told
 the placement (:meth:`PlacementPredictor.know`: the session's record of it, ``/rig/scene``),
 it skips reading and fitting.
@@ -49,8 +56,9 @@ class PlacementPredictor(Predictor):
         from softshape_ros.sim.placement_fit import PlacementFit
         self.shape = shape
         self.fit = PlacementFit(cfg, self.views, self.image_size)
-        self._placements: OrderedDict[bytes, Scene] = OrderedDict()
+        self._placements: OrderedDict[bytes, tuple[Scene, tuple]] = OrderedDict()
         self.known: Scene | None = None
+        self.alone = ''             # why the tube model drew the last placement itself, if it did
 
     def know(self, scene: Scene | None) -> None:
         """
@@ -72,12 +80,16 @@ class PlacementPredictor(Predictor):
         model, config = load_checkpoint(checkpoint)
         return cls(model, config, ShapePredictor.load(head, cfg), cfg)
 
-    @torch.inference_mode()
     def placement(self, initial: np.ndarray) -> Scene:
         """Read and fit the placement of V x C x S x S uint8 rest images (cached per image set)."""
+        return self._placement(initial)[0]
+
+    @torch.inference_mode()
+    def _placement(self, initial: np.ndarray) -> tuple[Scene, tuple]:
+        """(placement, views its object is hidden in); told the placement, nothing hidden."""
         imgs = self._images(initial, batch=False)
         if self.known is not None:
-            return self.known
+            return self.known, ()
         key = hashlib.sha1(imgs.tobytes()).digest()
         if key in self._placements:
             self._placements.move_to_end(key)
@@ -90,11 +102,11 @@ class PlacementPredictor(Predictor):
             raise PlacementHeadError('the checkpoint does not describe placements (trained '
                                      'without the scene loss): nothing to start the fit from')
         reading = read_facing_out(scene_from_vector(described[0].numpy()), self.shape.sym)
-        scene = self.fit.fit(imgs, reading).scene
-        self._placements[key] = scene
+        r = self.fit.fit(imgs, reading)
+        self._placements[key] = (r.scene, r.hidden)
         if len(self._placements) > CACHED_PLACEMENTS:
             self._placements.popitem(last=False)
-        return scene
+        return r.scene, r.hidden
 
     @torch.inference_mode()
     def predict_batch(self, initial_b, pressures_b) -> np.ndarray:
@@ -102,7 +114,31 @@ class PlacementPredictor(Predictor):
         imgs, p, x = self._batch(initial_b, pressures_b)
         if not len(imgs):
             return imgs.copy()
-        scenes = [self.placement(i) for i in imgs]
-        kp = self.shape.keypoints(scenes, p * self.max_pressure_pa)      # B x V x K x 4
-        y = self.model(x, torch.from_numpy(p.astype(np.float32)), truth=kp, parts=True).teacher
+        fits = [self._placement(i) for i in imgs]
+        why = [alone_because(self.fit, self.shape, scene, hidden) for scene, hidden in fits]
+        self.alone = why[-1]
+        pt = torch.from_numpy(p.astype(np.float32))
+        kp = self.shape.keypoints([s for s, _ in fits], p * self.max_pressure_pa)  # B x V x K x 4
+        y = self.model(x, pt, truth=kp, parts=True).teacher              # B x V*C x S x S
+        own = [b for b, w in enumerate(why) if w]
+        if own:                     # the head cannot know these: the tube model's own bet
+            y[own] = self.model(x[own], pt[own])
         return to_uint8(y, imgs.shape)
+
+
+def alone_because(fit, shape: ShapePredictor, scene: Scene, hidden=()) -> str:
+    """
+    Say why the tube model should draw ``scene``'s robot itself ('': the head draws it).
+
+    ``hidden``: the views the fit found the object hidden in (its depth is not in the rest
+    images); farther from the rest robot than the head's ``reach_m`` for the kind, the head
+    extrapolates.
+    """
+    if hidden:
+        return f'hidden in {", ".join(hidden)}'
+    reach = shape.reach_m.get(scene.object)
+    if reach is not None:
+        clear = fit.clearance(scene)
+        if clear > reach:
+            return f'{clear * 1e3:.1f} mm clear, beyond the head\'s {reach * 1e3:.1f} mm'
+    return ''

@@ -4,9 +4,12 @@ The placement path, measured: fitted placement + folded placement head, drawn by
 On the held-out placements of a test dataset: the tube model reads each placement from its
 rest images (its scene description), ``sim/placement_fit`` fits it to those images, and
 the placement head (trained on the training dataset, ``experiments/placement_head``) predicts
-every actuation's keypoints, which the tube model draws. Reported beside the tube model's
-own prediction and the head given the true or the unfitted read placement: silhouette IoU
-all / touching / free, the gap, tip error, intrusion, and how far the placements were read.
+every actuation's keypoints, which the tube model draws. The placement path is that, with
+the tube model's own prediction where the fitted object is hidden in a view or beyond the
+head's reach (``placement_predictor.alone_because``, as ``PlacementPredictor`` serves it).
+Reported beside the tube model's own prediction and the head given the true, the unfitted
+read or the fitted placement everywhere: silhouette IoU all / touching / free, the gap,
+tip error, intrusion, and how far the placements were read.
 """
 
 from __future__ import annotations
@@ -116,7 +119,7 @@ def run(train, test, checkpoint, out, steps: int = 20000, workers: int = 2,
     fit_s = time.monotonic() - t0
     (out / 'fitted_placements.json').write_text(json.dumps(
         {str(s): {'fitted': json.loads(r.scene.to_json()), 'mse': r.mse,
-                  'evaluations': r.evaluations, 'starts': r.starts,
+                  'evaluations': r.evaluations, 'starts': r.starts, 'hidden': list(r.hidden),
                   'read': json.loads(read[s].to_json()),
                   'truth': json.loads(truth[s].to_json())} for s, r in sorted(fitted.items())}))
 
@@ -128,8 +131,7 @@ def run(train, test, checkpoint, out, steps: int = 20000, workers: int = 2,
     rows_of = scenes[idx]
     results = {}
 
-    def score(name, kp):
-        pred = _draw(model, ini, p, kp).reshape(tgt_np.shape)
+    def score(name, pred):
         r = evaluate_arrays(init_np, tgt_np, pred, sil, touching)
         row = {k: r[k]['model'] for k in ('touching', 'free')}
         row['all'] = r['model']
@@ -141,11 +143,20 @@ def run(train, test, checkpoint, out, steps: int = 20000, workers: int = 2,
                          'tip_px_median': row['all']['tip_error_median_px'],
                          'intrusion': row['all'].get('intrusion'), 'metrics': row}
 
-    score('tube model alone', None)
+    alone = _draw(model, ini, p, None).reshape(tgt_np.shape)
+    score('tube model alone', alone)
     for name, table in (('head, true placement', truth),
                         ('head, read placement (unfitted)', read),
                         ('head, fitted placement', {s: r.scene for s, r in fitted.items()})):
-        score(name, head.keypoints([table[int(s)] for s in rows_of], pa))
+        pred = _draw(model, ini, p, head.keypoints([table[int(s)] for s in rows_of], pa))
+        score(name, pred.reshape(tgt_np.shape))
+    from softshape_ros.experiments.placement_predictor import alone_because
+    from softshape_ros.sim.placement_fit import PlacementFit
+    fit = PlacementFit(cfg, views)
+    why = {s: alone_because(fit, head, r.scene, r.hidden) for s, r in fitted.items()}
+    own = np.array([bool(why[int(s)]) for s in rows_of])             # per test row
+    score('placement path', np.where(own[:, None, None, None, None], alone,
+                                     pred.reshape(tgt_np.shape)))   # pred: the fitted row's
     summary = {
         'train': str(train), 'test': str(test), 'checkpoint': str(checkpoint),
         'test_rows': int(len(idx)), 'test_placements': int(len(ids)),
@@ -153,6 +164,8 @@ def run(train, test, checkpoint, out, steps: int = 20000, workers: int = 2,
         'fit': {'seconds': round(fit_s, 1), 'workers': workers,
                 'seconds_per_placement_per_worker': round(fit_s * workers / len(ids), 2),
                 'mse_median': float(np.median([r.mse for r in fitted.values()])),
+                'hidden_placements': sum(bool(r.hidden) for r in fitted.values()),
+                'tube_model_alone_placements': sum(bool(w) for w in why.values()),
                 'evaluations_mean': float(np.mean([r.evaluations for r in fitted.values()]))},
         'read': _errors(read, truth),
         'fitted': _errors({s: r.scene for s, r in fitted.items()}, truth),

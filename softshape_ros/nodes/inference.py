@@ -258,7 +258,10 @@ class InferenceNode(Node):
         """Say where the placement the head is told comes from ('' without the head)."""
         if self.placement is None:
             return ''
-        return 'from /rig/scene' if self.placement.known is not None else 'fitted to rest images'
+        source = 'from /rig/scene' if self.placement.known is not None else \
+            'fitted to rest images'
+        why = self.placement.alone
+        return source if not why else f'{source}; {why}: tube model alone'
 
     def on_shutdown(self) -> None:
         self.running = False

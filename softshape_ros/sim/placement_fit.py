@@ -7,6 +7,10 @@ rendering"). This fit starts from a reading (the tube model's, or a person's) an
 the placement until the simulator's rendering of the rest scene matches both rest images
 best (Nelder-Mead on the mean squared gray-level error, supersampled as the dataset is).
 
+An object that one view sees only behind the robot has no depth along the other view's
+ray in the images: the fit lands somewhere on a ray some 10 mm long and says so
+(:attr:`FitResult.hidden`, docs/model.md "Where the images do not hold the placement").
+
 Simulation only as it stands: it reads images with the renderer that drew them. On the
 real rig it needs a rendering matched to the cameras (docs/model.md).
 """
@@ -35,6 +39,10 @@ CLEARANCE_COST = 100.0  # gray levels^2 per mm^2 short of the clearance: a wall 
 # Roll and pitch of an object standing as the rig's objects stand: cylinders and prisms on
 # end, rings on edge (the simulated placements' and the lab's).
 UPRIGHT = {'cylinder': (0.0, 0.0), 'ring': (math.pi / 2, 0.0), 'prism': (0.0, 0.0)}
+# A view the object changes fewer than HIDDEN_PX pixels of, by more than SHOWN_GRAY gray
+# levels (the yellow mask's level), does not show it: it stands behind the robot there.
+HIDDEN_PX = 5
+SHOWN_GRAY = 10.0
 
 
 class FitError(ValueError):
@@ -119,6 +127,7 @@ class FitResult:
     mse: float              # gray levels^2 against the rest images
     evaluations: int
     starts: int
+    hidden: tuple = ()      # views that do not show the fitted object (PlacementFit.hidden_views)
 
 
 class PlacementFit:
@@ -145,14 +154,28 @@ class PlacementFit:
         for v in self.views:
             cam = self.rig.cameras[v]
             self.grids.append((cam, cam.grid(cam.crop, (self.size * self.ss,) * 2)))
+        self.robot_alone = self._render([])
 
     def render(self, scene: Scene) -> np.ndarray:
         """Render the rest scene as (V, S, S) float gray levels (supersampled, area-averaged)."""
-        obstacles = [obstacle_from_scene(scene)]
+        return self._render([obstacle_from_scene(scene)])
+
+    def _render(self, obstacles) -> np.ndarray:
         s, k = self.size, self.ss
         return np.stack([render_view(cam, self.rest.backbone_m, self.rest.radii_m, obstacles,
                                      grid, gray=True).astype(np.float32)
                          .reshape(s, k, s, k).mean(axis=(1, 3)) for cam, grid in self.grids])
+
+    def hidden_views(self, scene: Scene) -> tuple:
+        """
+        Return the views that do not show ``scene``'s object (it stands behind the robot).
+
+        Seen in one view only, the object can slide along that view's ray, growing as it
+        recedes, over as much as the robot hides it in the other: the same rest images
+        for placements some 10 mm apart (docs/model.md).
+        """
+        shown = (np.abs(self.render(scene) - self.robot_alone) > SHOWN_GRAY).sum(axis=(1, 2))
+        return tuple(v for v, n in zip(self.views, shown) if n < HIDDEN_PX)
 
     def clearance(self, scene: Scene) -> float:
         """Return the object's least distance to the robot's surface at rest (m; < 0: inside)."""
@@ -216,7 +239,7 @@ class PlacementFit:
             if fx < best_f:
                 best_x, best_f = x, fx
         scene = placement_scene(reading, best_x, up)
-        return FitResult(scene, self.mse(scene, img), evals[0], starts)
+        return FitResult(scene, self.mse(scene, img), evals[0], starts, self.hidden_views(scene))
 
     @staticmethod
     def _run(cost, x, scale: float, evals: int) -> tuple[np.ndarray, float]:
