@@ -150,13 +150,13 @@ def run(train, test, checkpoint, out, steps: int = 20000, workers: int = 2,
                         ('head, fitted placement', {s: r.scene for s, r in fitted.items()})):
         pred = _draw(model, ini, p, head.keypoints([table[int(s)] for s in rows_of], pa))
         score(name, pred.reshape(tgt_np.shape))
+    drawn = pred.reshape(tgt_np.shape)                 # the head's, for the fitted placements
     from softshape_ros.experiments.placement_predictor import alone_because
     from softshape_ros.sim.placement_fit import PlacementFit
     fit = PlacementFit(cfg, views)
     why = {s: alone_because(fit, head, r.scene, r.hidden) for s, r in fitted.items()}
     own = np.array([bool(why[int(s)]) for s in rows_of])             # per test row
-    score('placement path', np.where(own[:, None, None, None, None], alone,
-                                     pred.reshape(tgt_np.shape)))   # pred: the fitted row's
+    score('placement path', np.where(own[:, None, None, None, None], alone, drawn))
     summary = {
         'train': str(train), 'test': str(test), 'checkpoint': str(checkpoint),
         'test_rows': int(len(idx)), 'test_placements': int(len(ids)),
