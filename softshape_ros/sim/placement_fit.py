@@ -174,7 +174,10 @@ class PlacementFit:
         recedes, over as much as the robot hides it in the other: the same rest images
         for placements some 10 mm apart (docs/model.md).
         """
-        shown = (np.abs(self.render(scene) - self.robot_alone) > SHOWN_GRAY).sum(axis=(1, 2))
+        return self._hidden(self.render(scene))
+
+    def _hidden(self, rendered: np.ndarray) -> tuple:
+        shown = (np.abs(rendered - self.robot_alone) > SHOWN_GRAY).sum(axis=(1, 2))
         return tuple(v for v, n in zip(self.views, shown) if n < HIDDEN_PX)
 
     def clearance(self, scene: Scene) -> float:
@@ -239,7 +242,9 @@ class PlacementFit:
             if fx < best_f:
                 best_x, best_f = x, fx
         scene = placement_scene(reading, best_x, up)
-        return FitResult(scene, self.mse(scene, img), evals[0], starts, self.hidden_views(scene))
+        rendered = self.render(scene)
+        return FitResult(scene, float(((rendered - img) ** 2).mean()), evals[0], starts,
+                         self._hidden(rendered))
 
     @staticmethod
     def _run(cost, x, scale: float, evals: int) -> tuple[np.ndarray, float]:
