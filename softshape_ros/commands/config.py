@@ -14,6 +14,10 @@ def _show(args) -> int:
     return 0
 
 
+#: The subcommands :func:`register` adds; ``softshape NAME`` registers only NAME's module.
+COMMANDS = ('config',)
+
+
 def register(sub) -> None:
     p = sub.add_parser('config', help='validate and print the rig configuration as JSON')
     p.add_argument('--config', default=None, help='rig YAML (default: the package rig.yaml)')

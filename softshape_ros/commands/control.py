@@ -32,6 +32,10 @@ def _control_eval(args) -> int:
     return 0
 
 
+#: The subcommands :func:`register` adds; ``softshape NAME`` registers only NAME's module.
+COMMANDS = ('control-eval',)
+
+
 def register(sub) -> None:
     p = sub.add_parser('control-eval',
                        help='close the loop through a model on the simulated rig: success, '

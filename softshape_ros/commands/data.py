@@ -37,6 +37,10 @@ def _build(args) -> int:
     return 0
 
 
+#: The subcommands :func:`register` adds; ``softshape NAME`` registers only NAME's module.
+COMMANDS = ('bag', 'build-dataset')
+
+
 def register(sub) -> None:
     bag = sub.add_parser('bag', help='inspect or repair rosbag2 bags (MCAP or sqlite3)')
     bsub = bag.add_subparsers(dest='bag_command', metavar='BAG_COMMAND')

@@ -10,6 +10,10 @@ def _run(args) -> int:
     return main_args(args)
 
 
+#: The subcommands :func:`register` adds; ``softshape NAME`` registers only NAME's module.
+COMMANDS = ('demo',)
+
+
 def register(sub) -> None:
     d = DemoSettings()
     p = sub.add_parser('demo', help='record on the simulated rig, build a dataset, train, '

@@ -46,6 +46,10 @@ def _virtual_due(args) -> int:
     return 0
 
 
+#: The subcommands :func:`register` adds; ``softshape NAME`` registers only NAME's module.
+COMMANDS = ('virtual-due',)
+
+
 def register(sub) -> None:
     p = sub.add_parser('virtual-due', help='emulate the Arduino Due pressure bridge on a pty')
     p.add_argument('--link', default=None,

@@ -152,6 +152,11 @@ def _placement_head(args) -> int:
     return 0
 
 
+#: The subcommands :func:`register` adds; ``softshape NAME`` registers only NAME's module.
+COMMANDS = ('train', 'evaluate', 'export', 'ensemble', 'reproduce', 'pretrain', 'distance-sweep',
+            'placement-head')
+
+
 def register(sub) -> None:
     from softshape_ros.model.losses import LOSSES
     from softshape_ros.model.networks import ARCHS

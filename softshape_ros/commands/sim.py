@@ -90,6 +90,10 @@ def _simulate(args) -> int:
     return 0
 
 
+#: The subcommands :func:`register` adds; ``softshape NAME`` registers only NAME's module.
+COMMANDS = ('sim-solve', 'simulate')
+
+
 def register(sub) -> None:
     from softshape_ros.sim.generate import SPARSE_SHARE, TOWARD_SHARE
     p = sub.add_parser('sim-solve', help='solve one simulator equilibrium and print JSON')
