@@ -142,22 +142,34 @@ def test_virtual_due_command_line(tmp_path):
     import subprocess
     import sys
 
+    import signal
+
     link_path, log_path = tmp_path / 'ttyDUE', tmp_path / 'applied.jsonl'
     proc = subprocess.Popen([sys.executable, '-m', 'softshape_ros.cli', 'virtual-due',
                              '--link', str(link_path), '--log', str(log_path),
-                             '--duration', '4'], stdout=subprocess.PIPE, text=True)
+                             '--duration', '0'], stdout=subprocess.PIPE, text=True)
+
+    def logged():
+        text = log_path.read_text() if log_path.exists() else ''
+        return [json.loads(x) for x in text.splitlines()]
     try:
         assert 'virtual Due on' in proc.stdout.readline()
         link = DueLink(str(link_path), LIM).start()
         assert link.wait_connected(5)
         assert link.wait_ack(link.send_command([1234.0] * 6), 1.0)
         link.close()
+        # The host gone, the Due vents; the log shows it while the emulator still runs.
+        t_end = time.monotonic() + 10
+        while not (logged() and logged()[-1]['reason'] == 'vent'):
+            assert time.monotonic() < t_end and proc.poll() is None, logged()
+            time.sleep(0.05)                   # polling the log file for the vent
+        proc.send_signal(signal.SIGINT)        # runs until stopped (--duration 0)
         out, _ = proc.communicate(timeout=10)
         assert proc.returncode == 0 and 'set-point changes applied' in out
     finally:
         if proc.poll() is None:
             proc.kill()
-    entries = [json.loads(x) for x in log_path.read_text().splitlines()]
+    entries = logged()
     assert [1234] * 6 in [e['setpoints_pa'] for e in entries]
     assert entries[-1]['reason'] == 'vent'
 

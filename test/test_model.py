@@ -52,7 +52,7 @@ def small_set(tmp_path_factory):
 def trained(small_set, tmp_path_factory):
     ckpt = tmp_path_factory.mktemp('ckpt') / 'ours'
     cfg = TrainConfig(arch='ours', batch_size=16, lr=3e-3, max_steps=200, eval_every=20,
-                      patience=100, seed=0, threads=1)
+                      patience=100, seed=0, threads=2)
     return train(small_set, cfg, out=ckpt, progress=False), ckpt
 
 
@@ -216,7 +216,7 @@ def test_short_training_on_contact_rich_data_beats_copy_on_touching_samples(tmp_
     ds = write_dataset(tmp_path / 'near', initial, target, pressure, scene, [MAX_PA] * 6,
                        ['main'])
     cfg = TrainConfig(arch='ours', batch_size=16, lr=3e-3, max_steps=150, eval_every=30,
-                      patience=100, seed=0, threads=1)
+                      patience=100, seed=0, threads=2)
     ck = tmp_path / 'ck'
     res = train(ds, cfg, out=ck, progress=False)
     val = np.asarray(res.config['dataset']['val_rows'])

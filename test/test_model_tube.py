@@ -271,7 +271,7 @@ def test_the_scene_encoder_learns_to_see_the_placement(simulated):
     """A short keypoint training tells the encoder where the object is (the scene term)."""
     ds = load_dataset(simulated.path)
     cfg = TrainConfig(arch='tube', loss='keypoints', batch_size=16, max_steps=150,
-                      eval_every=50, patience=100, seed=0, threads=1)
+                      eval_every=50, patience=100, seed=0, threads=2)
     idx = np.arange(len(ds))
     x = torch.from_numpy(np.array(ds.initial).reshape(len(ds), -1, 64, 64)).float() / 255
     want = scene_targets(ds, idx)
@@ -883,7 +883,8 @@ def test_a_depth_test_model_learns_where_the_object_is(simulated, tmp_path):
     """A short training: ObjectNet finds the objects; the checkpoint loads and predicts."""
     from softshape_ros.experiments.object_depths import object_depths
     ds = load_dataset(simulated.path)
-    cfg = TrainConfig(arch='tube', batch_size=16, max_steps=120, eval_every=40, patience=100,
+    # 80 steps: occupancy IoU 0.80 on this seed (120: 0.82, 60: 0.54, 40: 0.01).
+    cfg = TrainConfig(arch='tube', batch_size=16, max_steps=80, eval_every=40, patience=100,
                       seed=0, threads=2, split='scene', arch_params={'depth_test': True})
     res = train(ds, cfg, out=tmp_path / 'ck', progress=False, object_depths=object_depths)
     model, saved = load_checkpoint(tmp_path / 'ck')
