@@ -139,10 +139,9 @@ def test_virtual_due_faults_are_visible_on_the_wire(tmp_path):
 
 def test_virtual_due_command_line(tmp_path):
     import json
+    import signal
     import subprocess
     import sys
-
-    import signal
 
     link_path, log_path = tmp_path / 'ttyDUE', tmp_path / 'applied.jsonl'
     proc = subprocess.Popen([sys.executable, '-m', 'softshape_ros.cli', 'virtual-due',
