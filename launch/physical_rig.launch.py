@@ -79,5 +79,6 @@ def generate_launch_description():
              parameters=[params_file('recorder'), {'output': LaunchConfiguration('bag')}]),
         Node(package='softshape_ros', executable='collector', name='collector', output='screen',
              parameters=[params_file('collector'),
-                         {'session': LaunchConfiguration('session'), 'simulated': False}]),
+                         {'session': LaunchConfiguration('session'), 'simulated': False,
+                          'recorder': 'recorder'}]),     # the first scene waits for it
     ])

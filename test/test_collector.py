@@ -107,6 +107,34 @@ def test_list_mode_session_order_records_and_venting(ros, tmp_path):
 
 
 @pytest.mark.ros
+def test_the_first_scene_waits_until_the_named_recorder_is_matched(ros, tmp_path):
+    """A recorder started beside the collector (as the launch files do) misses nothing."""
+    import rclpy
+    from std_msgs.msg import Float64MultiArray, Header, String
+
+    from softshape_ros.nodes.common import RELIABLE_QOS
+    resp = Responder(ros)
+    col = _collector(ros, session=str(_session(tmp_path, 1, 2)), recorder='bag_probe')
+    # The rig is there (pressures, a trigger subscriber): only the recorder is missing.
+    ros.wait_for(lambda: col.rig_waiting_for() == '; '.join(
+        f'bag_probe does not subscribe to {t}'
+        for t in ('/rig/pressure/command', '/rig/trigger', '/rig/sample')),
+        what=lambda: f'waiting for the recorder alone: {col.rig_waiting_for()!r}')
+    assert col.state == 'waiting for the rig' and col.samples == 0 and resp.scenes == []
+    probe = ros.add(rclpy.create_node('bag_probe'))
+    got = {'command': [], 'trigger': [], 'sample': []}
+    for key, cls in (('command', Float64MultiArray), ('trigger', Header), ('sample', String)):
+        topic = {'command': '/rig/pressure/command'}.get(key, f'/rig/{key}')
+        probe.create_subscription(cls, topic, got[key].append, RELIABLE_QOS)
+    ros.wait_for(col.done.is_set, timeout=30, what='session done')
+    ros.wait_for(lambda: len(got['sample']) == 3 and len(got['trigger']) == 3,
+                 what=lambda: f'all three samples at the probe: {len(got["sample"])}')
+    assert json.loads(got['sample'][0].data)['kind'] == 'rest'
+    ros.wait_for(lambda: len(got['command']) == len(resp.commands) >= 4,
+                 what='every command at the probe too, the first vent included')
+
+
+@pytest.mark.ros
 def test_unsettled_samples_are_marked_and_reported(ros, tmp_path):
     resp = Responder(ros, gain=0.5)                      # regulators that never reach
     col = _collector(ros, session=str(_session(tmp_path, 1, 2)), settle_timeout_s=0.2,

@@ -121,6 +121,18 @@ def test_scene_and_trigger_give_images_and_bad_scene_is_ignored(ros):
     diff = img.astype(int) - clean.astype(int)
     assert img.shape == clean.shape and 2.0 < diff.std() < 6.0   # the noise, nothing else
     assert abs(diff.mean()) < 1.0
+    # The cameras' diagnostics say how many readers each camera writer has matched: the
+    # probe's on the main image, none on the others (what a recorder's user waits on).
+    from softshape_ros.nodes.diagnostics import subscribers_key
+    t = probe.cfg.topics
+    key = subscribers_key(t.camera('camera_image', 'main'))
+    ros.wait_for(lambda: key in probe.diags.get('mock_hardware: cameras', ((), '', {}))[2],
+                 what='camera diagnostics past starting up')
+    said = probe.diags['mock_hardware: cameras'][2]
+    assert said[key] == '1'
+    for topic in (t.camera('camera_image', 'side'), t.camera('camera_info', 'main'),
+                  t.camera('capture_time', 'side')):
+        assert said[subscribers_key(topic)] == '0'
 
 
 def test_solver_error_gives_no_images_and_diagnostics_error(ros):

@@ -20,6 +20,7 @@ from rclpy.serialization import deserialize_message
 from std_srvs.srv import Trigger
 
 from softshape_ros.nodes.common import SENSOR_QOS, numpy_to_image, ns_to_stamp
+from softshape_ros.nodes.diagnostics import newest_key, received_key
 from waits import wait_matched
 
 RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
@@ -73,6 +74,7 @@ def test_records_camera_rate_streams_mcap_roundtrip(ros, tmp_path):
     t0 = time.time_ns()
     n = 45                                         # 1.5 s at 30 Hz, 320x240 RGB
     for i in range(n):
+        t_last = time.time_ns()                    # before the last trigger is published
         stamp = ns_to_stamp(10**18 + i * 33_333_333)
         h = Header(frame_id='rig', stamp=stamp)
         trig.publish(h)
@@ -99,6 +101,14 @@ def test_records_camera_rate_streams_mcap_roundtrip(ros, tmp_path):
     kv = status()
     assert kv['current_file'].startswith(str(bag))
     assert kv['dropped_queue_full'] == '0'
+    # Per topic: how many arrived, and when the newest was published (its source stamp), so
+    # a process that stops the recorder can first wait for what must be in the bag.
+    reliable = ('/rig/camera_main/image_raw', '/rig/trigger')
+    ros.wait_for(lambda: all(status().get(received_key(x)) == str(n) for x in reliable),
+                 timeout=20, what=lambda: f'diagnostics counting {n} of each: {status()}')
+    kv = status()
+    for topic in reliable:
+        assert t_last <= int(kv[newest_key(topic)]) <= time.time_ns()
     rec.recording.stop()
     t1 = time.time_ns()
 

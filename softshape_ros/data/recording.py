@@ -99,6 +99,7 @@ class Recording:
                 'messages_written': self.writer.message_count,
                 'bytes_written': self.writer.bytes_written,
                 'received': sum(self.received.values()),
+                'received_by_topic': dict(sorted(self.received.items())),
                 'skipped_while_paused': sum(self.paused_skipped.values()),
                 'dropped_queue_full': sum(self.drops.values()),
                 'dropped_after_error': self.refused,

@@ -178,7 +178,7 @@ def record(settings: DemoSettings, stage: Stage, cfg) -> dict:
             client.wait_recorder_subscribed(procs)
             collector = NodeProcess('collector', {
                 'session': str(session), 'simulated': True, 'rate_hz': settings.rate_hz,
-                'seed': settings.seed, 'wait_for_frames': True, 'start_delay_s': 2.0},
+                'seed': settings.seed, 'wait_for_frames': True, 'recorder': 'recorder'},
                 log_dir=logs).start()
             procs.append(collector)
             t0 = time.monotonic()
@@ -192,7 +192,12 @@ def record(settings: DemoSettings, stage: Stage, cfg) -> dict:
                     time.sleep(0.2)
                 bar.update(client.samples_seen - bar.n)
             client.wait_images_for_last_trigger(timeout=10.0)
-            time.sleep(1.5)       # the last frames reach the bag
+            t = cfg.topics
+            client.wait_recorded_since(
+                [t.trigger, t.sample, t.pressure_measured]
+                + [t.camera(k, v) for v in client.views
+                   for k in ('camera_image', 'camera_info', 'capture_time')],
+                client.last_sample_stamp, procs)
             elapsed = time.monotonic() - t0
             collector.stop()
         finally:

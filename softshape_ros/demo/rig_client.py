@@ -19,6 +19,7 @@ from std_msgs.msg import Float64MultiArray, Header, String
 from softshape_ros.nodes.common import (IMAGE_QOS, LATCHED_QOS, RELIABLE_QOS, image_to_numpy,
                                         ns_to_stamp, stamp_to_ns)
 from softshape_ros.demo.participant import Participant
+from softshape_ros.nodes.diagnostics import newest_key, subscribers_key
 from softshape_ros.processes import wait_until
 from softshape_ros.vision.preprocess import preprocess
 
@@ -42,6 +43,7 @@ class RigClient(Participant):
         self.inference_state = ''
         self.inference_scene = ''       # the scene inference last said it is on
         self.inference_values: dict = {}
+        self.status_values: dict = {}   # diagnostics: status name -> {key: value}
         self.frames = {v: {} for v in self.views}
         self.predicted = {v: [] for v in self.views}
         self.measured = None
@@ -74,6 +76,7 @@ class RigClient(Participant):
 
     def _on_diag(self, msg):
         for st in msg.status:
+            self.status_values[st.name] = {kv.key: kv.value for kv in st.values}
             level = st.level[0] if isinstance(st.level, (bytes, bytearray)) else int(st.level)
             if st.name.endswith(': session') and level == 2 and 'failed' in st.message:
                 self.collector_failed = st.message
@@ -123,7 +126,39 @@ class RigClient(Participant):
             topics += [t.camera(k, v) for k in ('camera_image', 'camera_info', 'capture_time')]
         wait_until(lambda: all(self.node.count_subscribers(x) > ours.get(x, 0) for x in topics),
                    timeout, what='the recorder to subscribe the rig topics', processes=procs)
-        time.sleep(0.5)   # matching is seen here slightly before the writer side has it
+        self.wait_camera_writers_matched([x for x in topics if x != t.pressure_measured],
+                                         procs, timeout)
+
+    def wait_camera_writers_matched(self, topics=None, procs=(), timeout: float = 30.0):
+        """
+        Wait until mock_hardware's diagnostics say its writers match every reader seen.
+
+        The graph shows a new reader before the writer has matched it, and a frame
+        published in between never reaches it.
+        """
+        t = self.cfg.topics
+        topics = topics or [t.camera(k, v) for v in self.views
+                            for k in ('camera_image', 'camera_info', 'capture_time')]
+
+        def matched():
+            said = self.status_values.get('mock_hardware: cameras', {})
+            return all(int(said.get(subscribers_key(x), -1)) >= self.node.count_subscribers(x)
+                       for x in topics)
+        wait_until(matched, timeout, what="mock_hardware's camera writers to match their readers",
+                   processes=procs)
+
+    def wait_recorded_since(self, topics, stamp_ns: int, procs=(), timeout: float = 30.0):
+        """
+        Wait until the recorder has, on every topic, a message published at ``stamp_ns`` or later.
+
+        A writer delivers in order, so the recorder then holds all that was published before.
+        """
+        def newest() -> list:
+            said = self.status_values.get('recorder: bag', {})
+            return [int(said.get(newest_key(x), 0)) for x in topics]
+        wait_until(lambda: min(newest()) >= stamp_ns, timeout,
+                   what=f'the recorder to have every message of {", ".join(topics)} up to the '
+                        'last trigger', processes=procs)
 
     def wait_images_for_last_trigger(self, timeout: float) -> None:
         stamp = self.last_sample_stamp
@@ -176,9 +211,8 @@ class RigClient(Participant):
                    and int(self.inference_values.get('camera_publishers', 0)) >= 1,
                    30.0, what=f'inference to take scene {sid}', processes=procs)
         self._settle(zeros, procs)
-        time.sleep(0.2)
-        # The match is seen from inference's reader; the camera's writer may match it a
-        # moment later: snap again until inference has its rest images, as a user would.
+        self.wait_camera_writers_matched(procs=procs)
+        # Should a rest snap still not reach inference, snap again, as a user would.
         for attempt in range(REST_ATTEMPTS):
             stamp = self._snap(procs, 'rest', scene['id'], zeros)
             try:

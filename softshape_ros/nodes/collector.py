@@ -52,6 +52,8 @@ PARAMETERS = [
     Param('wait_for_frames', True, 'hold the next actuation until every camera answered'),
     Param('frame_timeout_s', 10.0, '... or this long (logged, counted in diagnostics)',
           (0.0, 3600.0)),
+    Param('recorder', '', "a recorder node's name ('' = none): the first scene waits until "
+          'it subscribes to the command, trigger and sample topics and they have matched it'),
 ]
 
 
@@ -81,6 +83,7 @@ class Collector(Node):
             wait_for_operator=not p.simulated,
             wait_for_frames=p.wait_for_frames, frame_timeout_s=p.frame_timeout_s,
             next_scene_service=f'{self.get_fully_qualified_name()}/next_scene')
+        self.recorder = p.recorder
         self.feedback = RigFeedback(self.cfg.chamber_names, self.cfg.camera_names)
         self.session = None
         if session_file:
@@ -160,7 +163,28 @@ class Collector(Node):
             missing.append('no measured pressures yet')
         if self.pub_trigger.get_subscription_count() == 0:
             missing.append('nobody subscribes to the trigger')
+        if self.recorder:
+            missing += self._recorder_missing()
         return '; '.join(missing)
+
+    def _recorder_missing(self) -> list[str]:
+        """
+        Say which of our topics the recorder does not yet take everything from.
+
+        The graph shows its subscription before our writer has matched it, and a message
+        published in between is not in the bag: so each writer must have matched every
+        reader the graph shows (one that never matches, say of an incompatible QoS, keeps
+        the session waiting, logged every 5 s).
+        """
+        out = []
+        for pub in (self.pub_command, self.pub_trigger, self.pub_sample):
+            readers = self.get_subscriptions_info_by_topic(pub.topic_name)
+            if not any(r.node_name == self.recorder for r in readers):
+                out.append(f'{self.recorder} does not subscribe to {pub.topic_name}')
+            elif pub.get_subscription_count() < len(readers):
+                out.append(f'{pub.topic_name}: {len(readers)} subscribers, '
+                           f'{pub.get_subscription_count()} matched')
+        return out
 
     def send(self, pressures_pa) -> None:
         self.pub_command.publish(Float64MultiArray(data=[float(v) for v in pressures_pa]))

@@ -291,6 +291,21 @@ class TriggeredRate:
         return stat
 
 
+def received_key(topic: str) -> str:
+    """Return the key of a recorder's count of one topic's messages queued for the bag."""
+    return f'received {topic}'
+
+
+def newest_key(topic: str) -> str:
+    """Return the key of the newest queued message's source stamp (ns) on ``topic``."""
+    return f'newest {topic}'
+
+
+def subscribers_key(topic: str) -> str:
+    """Return the key of how many readers a node's writer on ``topic`` has matched."""
+    return f'subscribers {topic}'
+
+
 def fill(stat, level, message: str, values: dict, hardware_id: str = ''):
     """Fill a task's status (level, message, key-values) and return it."""
     stat.summary(level, message)

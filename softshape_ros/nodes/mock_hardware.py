@@ -31,7 +31,8 @@ from softshape_ros.nodes.camera_trigger import camera_info_msg, time_reference_m
 from softshape_ros.nodes.common import (IMAGE_QOS, LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS,
                                         declare_rig_config, log_at, main_wrapper, ns_to_stamp,
                                         numpy_to_image, stamp_to_ns)
-from softshape_ros.nodes.diagnostics import ERROR, OK, WARN, Updater, fill, topic_frequency
+from softshape_ros.nodes.diagnostics import (ERROR, OK, WARN, Updater, fill, subscribers_key,
+                                             topic_frequency)
 from softshape_ros.nodes.parameters import Param, declare
 from softshape_ros.pressure import CommandError, FirstOrderRegulator, check_command
 from softshape_ros.scene import Scene, SceneError
@@ -234,7 +235,19 @@ class MockHardware(Node):
                      'solves': c.solves, 'command_solves': c.command_solves,
                      'reused_shapes': c.reused,
                      'trigger_to_image_ms': c.trigger_latency.summary(),
-                     'scene': c.scene.id if c.scene else None}, 'SimRig')
+                     'scene': c.scene.id if c.scene else None,
+                     **self._matched_subscribers()}, 'SimRig')
+
+    def _matched_subscribers(self) -> dict:
+        """
+        Return each camera topic's readers our writer has matched (``subscribers <topic>``).
+
+        The graph shows a new reader before the writer matches it; a frame published in
+        between misses it. A recorder's user waits on this before triggering.
+        """
+        return {subscribers_key(pub.topic_name): pub.get_subscription_count()
+                for pubs in (self.pub_image, self.pub_info, self.pub_time)
+                for pub in pubs.values()}
 
     def on_shutdown(self) -> None:
         self.cameras.stop()

@@ -5,7 +5,8 @@ Like ``ros2 bag record`` (which this environment lacks): topics by name list and
 discovered while running, subscribed raw (CDR bytes, never deserialised) with a QoS that
 matches their publishers; one writer thread behind a bounded queue (softshape_ros.data.
 recording). Services ``~/pause``, ``~/resume``, ``~/split_bagfile`` (std_srvs/Trigger);
-``/diagnostics`` every second with messages, bytes, drops and the current file.
+``/diagnostics`` every second with messages, bytes, drops and the current file, and per
+topic the messages received and the newest one's source stamp (``received``/``newest <topic>``).
 """
 
 from __future__ import annotations
@@ -27,7 +28,8 @@ from softshape_ros.data.bag_writer import BagError, BagWriter, TopicSpec
 from softshape_ros.data.recording import Recording
 from softshape_ros.nodes.clocks import steady_timer
 from softshape_ros.nodes.common import declare_rig_config, main_wrapper
-from softshape_ros.nodes.diagnostics import ERROR, OK, WARN, Updater, fill
+from softshape_ros.nodes.diagnostics import (ERROR, OK, WARN, Updater, fill, newest_key,
+                                             received_key)
 from softshape_ros.nodes.parameters import Param, declare
 
 PARAMETERS = [
@@ -185,8 +187,8 @@ class Recorder(Node):
                                    flush_interval_s=p.flush_interval_s)
         self.subs = {}
         self.sub_qos = {}            # topic -> (message class, QoS profile in use)
-        # topic -> when the last message received was published (source timestamp, ns):
-        # everything one publisher sent before that instant has arrived (or was lost)
+        # topic -> when the newest message queued for the bag was published (source
+        # timestamp, ns): everything one publisher sent before that instant has arrived
         self.last_source_ns = {}
         self.skipped = {}            # topic -> why it is not recorded
         self.create_service(Trigger, '~/pause', self._pause)
@@ -272,11 +274,11 @@ class Recorder(Node):
         last_source = self.last_source_ns
 
         def cb(data, info):
-            t = None
+            t = source = None
             if isinstance(info, dict):
-                t = info.get('received_timestamp')
-                last_source[topic] = info.get('source_timestamp', 0)
-            offer(topic, t or clock.now().nanoseconds, data)
+                t, source = info.get('received_timestamp'), info.get('source_timestamp')
+            if offer(topic, t or clock.now().nanoseconds, data) and source:
+                last_source[topic] = source         # the newest message queued for the bag
         return cb
 
     # -- services --------------------------------------------------------------------------
@@ -313,8 +315,13 @@ class Recorder(Node):
                 if st['dropped_queue_full'] else f'{len(self.skipped)} topics not recordable'
         else:
             level, msg = OK, st['state']
+        by_topic = st.pop('received_by_topic')
         values = dict(st, bag=str(self.bag_path), topics=len(self.subs),
                       skipped='; '.join(f'{k}: {v}' for k, v in self.skipped.items()))
+        # Per topic. A writer delivers in order, so whoever stops the recorder can first wait
+        # until each topic's newest message was published after what must be in the bag.
+        values.update({received_key(t): n for t, n in by_topic.items()})
+        values.update({newest_key(t): n for t, n in sorted(self.last_source_ns.items())})
         return fill(stat, level, msg, values)
 
     def on_shutdown(self) -> None:
