@@ -206,24 +206,19 @@ class PlacementFit:
         a millimetre or two). Restarts around it until two are done and the match is
         good (GOOD_MSE), ``max_starts`` at most; a prism first from the best of its eight
         :func:`readings` after a short run from each (a reader may read its half turn,
-        lean or width for depth wrong).
+        lean or width for depth wrong), and a prism still matched poorly once more from
+        its fitted position in its other descriptions (:meth:`_redescribed`).
         """
         img = self._images(images)
         up = self.upright
         x_read = placement_params(reading, up)
         rng = np.random.default_rng(seed)
         evals = [0]
+        objective = self.objective(img, reading)
 
         def cost(t):
             evals[0] += 1
-            try:
-                scene = placement_scene(reading, t, up)
-                err = float(((self.render(scene) - img) ** 2).mean())
-                c = self.clearance(scene)
-            except (SceneError, ValueError):
-                return 1e9                      # impossible sizes: far from any match
-            inside = max(0.0, self.min_clearance_m - c) * 1e3
-            return err + CLEARANCE_COST * inside ** 2
+            return objective(t)
 
         firsts = [placement_params(r, up) for r in readings(reading)]
         if len(firsts) > 1:                 # screen them: a short run each, best first
@@ -241,10 +236,52 @@ class PlacementFit:
             starts += 1
             if fx < best_f:
                 best_x, best_f = x, fx
+        if best_f >= GOOD_MSE and reading.object == 'prism':
+            best_x, best_f = self._redescribed(cost, reading, best_x, best_f)
         scene = placement_scene(reading, best_x, up)
         rendered = self.render(scene)
         return FitResult(scene, float(((rendered - img) ** 2).mean()), evals[0], starts,
                          self._hidden(rendered))
+
+    def objective(self, images, template: Scene):
+        """
+        Return the fit's cost of :func:`placement_params` (``template`` gives the kind).
+
+        The mean squared gray-level error of the rendering against ``images``, plus a wall
+        where the object comes closer to the robot than ``min_clearance_m``.
+        """
+        img, up = self._images(images), self.upright
+
+        def cost(t) -> float:
+            try:
+                scene = placement_scene(template, t, up)
+                err = float(((self.render(scene) - img) ** 2).mean())
+                c = self.clearance(scene)
+            except (SceneError, ValueError):
+                return 1e9                      # impossible sizes: far from any match
+            inside = max(0.0, self.min_clearance_m - c) * 1e3
+            return err + CLEARANCE_COST * inside ** 2
+        return cost
+
+    def _redescribed(self, cost, reading: Scene, x, fx: float) -> tuple[np.ndarray, float]:
+        """
+        Try the fitted prism's other descriptions from where the fit stopped: (best x, cost).
+
+        A prism fit can stall where the restarts about the reading do not reach (a turn
+        round with the lower end traded for height, a lean the wrong way, width for depth):
+        further runs from there stay there. From the fitted position each of the other seven
+        descriptions gets a short run, and the best is run on at the finer steps.
+        """
+        up = self.upright
+        here = placement_scene(reading, x, up)
+        others = [placement_params(r, up) for r in readings(here)[1:]]
+        y, fy = min((self._run(cost, o, SCALES[0], SCREEN_EVALS) for o in others),
+                    key=lambda r: r[1])
+        for scale in SCALES[1:]:
+            ys, fs = self._run(cost, y, scale, MAX_EVALS)
+            if fs < fy:
+                y, fy = ys, fs
+        return (y, fy) if fy < fx else (x, fx)
 
     @staticmethod
     def _run(cost, x, scale: float, evals: int) -> tuple[np.ndarray, float]:
