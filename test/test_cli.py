@@ -7,10 +7,15 @@ import sys
 from softshape_ros.cli import build_parser, command_modules
 
 
+def choices(parser) -> dict:
+    """Return the subcommands a parser holds, by name."""
+    return parser._subparsers._group_actions[0].choices
+
+
 def added(module) -> set:
     parser = argparse.ArgumentParser()
     module.register(parser.add_subparsers())
-    return set(parser._subparsers._group_actions[0].choices)
+    return set(choices(parser))
 
 
 def test_every_module_names_the_subcommands_it_adds_and_no_two_share_one():
@@ -21,9 +26,8 @@ def test_every_module_names_the_subcommands_it_adds_and_no_two_share_one():
     assert len(seen) == len(set(seen)), seen
     # With no command (``softshape -h``) or an unknown one, the help lists every one.
     for command in (None, 'no-such-tool'):
-        assert set(build_parser(command)._subparsers._group_actions[0].choices) == set(seen)
-    assert set(build_parser('bag')._subparsers._group_actions[0].choices) == {
-        'bag', 'build-dataset'}
+        assert set(choices(build_parser(command))) == set(seen)
+    assert set(choices(build_parser('bag'))) == {'bag', 'build-dataset'}
 
 
 def test_a_bag_tool_does_not_import_torch(tmp_path):
@@ -35,5 +39,5 @@ def test_a_bag_tool_does_not_import_torch(tmp_path):
     assert r.stdout.split() == ['2', 'False'], (r.stdout, r.stderr)
     assert 'no such bag directory' in r.stderr
     # ... while a model tool still gets its whole parser.
-    train = build_parser('train')._subparsers._group_actions[0].choices['train']
+    train = choices(build_parser('train'))['train']
     assert '--arch {paper,ours,tube}' in train.format_help()

@@ -159,8 +159,8 @@ def test_virtual_due_command_line(tmp_path):
         link.close()
         # The host gone, the Due vents; the log shows it while the emulator still runs.
         t_end = time.monotonic() + 10
-        while not (logged() and logged()[-1]['reason'] == 'vent'):
-            assert time.monotonic() < t_end and proc.poll() is None, logged()
+        while not ((entries := logged()) and entries[-1]['reason'] == 'vent'):
+            assert time.monotonic() < t_end and proc.poll() is None, entries
             time.sleep(0.05)                   # polling the log file for the vent
         proc.send_signal(signal.SIGINT)        # runs until stopped (--duration 0)
         out, _ = proc.communicate(timeout=10)

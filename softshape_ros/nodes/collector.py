@@ -179,11 +179,11 @@ class Collector(Node):
         out = []
         for pub in (self.pub_command, self.pub_trigger, self.pub_sample):
             readers = self.get_subscriptions_info_by_topic(pub.topic_name)
+            matched = pub.get_subscription_count()
             if not any(r.node_name == self.recorder for r in readers):
                 out.append(f'{self.recorder} does not subscribe to {pub.topic_name}')
-            elif pub.get_subscription_count() < len(readers):
-                out.append(f'{pub.topic_name}: {len(readers)} subscribers, '
-                           f'{pub.get_subscription_count()} matched')
+            elif matched < len(readers):
+                out.append(f'{pub.topic_name}: {len(readers)} subscribers, {matched} matched')
         return out
 
     def send(self, pressures_pa) -> None:
