@@ -182,22 +182,22 @@ def record(settings: DemoSettings, stage: Stage, cfg) -> dict:
                 log_dir=logs).start()
             procs.append(collector)
             t0 = time.monotonic()
+            t = cfg.topics
+            # Progress as the recorder counts it: the collector waits until the recorder's
+            # readers are matched, not ours, so our own subscription may miss the first.
             with tqdm(total=total, desc='recording samples', unit='trigger') as bar:
-                while client.samples_seen < total:
+                while (n := client.recorded(t.sample)[0]) < total:
                     for p in procs:
                         p.check_alive()
                     if client.collector_failed:
                         raise RuntimeError(f'collector failed: {client.collector_failed}')
-                    bar.update(client.samples_seen - bar.n)
+                    bar.update(n - bar.n)
                     time.sleep(0.2)
-                bar.update(client.samples_seen - bar.n)
-            client.wait_images_for_last_trigger(timeout=10.0)
-            t = cfg.topics
-            client.wait_recorded_since(
-                [t.trigger, t.sample, t.pressure_measured]
-                + [t.camera(k, v) for v in client.views
-                   for k in ('camera_image', 'camera_info', 'capture_time')],
-                client.last_sample_stamp, procs)
+                bar.update(total - bar.n)
+            # Every sample is in the bag; the rest up to the last one is once each topic has
+            # a message published after it (its trigger and frames follow it).
+            client.wait_recorded_since([t.trigger, t.pressure_measured] + client.camera_topics(),
+                                       client.recorded(t.sample)[1], procs)
             elapsed = time.monotonic() - t0
             collector.stop()
         finally:

@@ -19,7 +19,7 @@ from std_msgs.msg import Float64MultiArray, Header, String
 from softshape_ros.nodes.common import (IMAGE_QOS, LATCHED_QOS, RELIABLE_QOS, image_to_numpy,
                                         ns_to_stamp, stamp_to_ns)
 from softshape_ros.demo.participant import Participant
-from softshape_ros.nodes.diagnostics import newest_key, subscribers_key
+from softshape_ros.nodes.diagnostics import newest_key, received_key, subscribers_key
 from softshape_ros.processes import wait_until
 from softshape_ros.vision.preprocess import preprocess
 
@@ -37,8 +37,6 @@ class RigClient(Participant):
         self.gray = cfg.dataset.gray if gray is None else gray
         self.size = cfg.dataset.image_size
         self.lock = threading.Lock()
-        self.samples_seen = 0
-        self.last_sample_stamp = None
         self.collector_failed = ''
         self.inference_state = ''
         self.inference_scene = ''       # the scene inference last said it is on
@@ -55,7 +53,6 @@ class RigClient(Participant):
         self.pub_sample = n.create_publisher(String, t.sample, RELIABLE_QOS)
         self.pub_trigger = n.create_publisher(Header, t.trigger, RELIABLE_QOS)
         self.pub_command = n.create_publisher(Float64MultiArray, t.pressure_command, RELIABLE_QOS)
-        n.create_subscription(String, t.sample, self._on_sample, RELIABLE_QOS)
         n.create_subscription(DiagnosticArray, t.diagnostics, self._on_diag, RELIABLE_QOS)
         n.create_subscription(JointState, t.pressure_measured, self._on_measured, RELIABLE_QOS)
         for v in self.views:
@@ -65,15 +62,6 @@ class RigClient(Participant):
                                   lambda m, v=v: self._on_predicted(v, m), IMAGE_QOS)
 
     # -- callbacks -------------------------------------------------------------------------
-    def _on_sample(self, msg):
-        try:
-            stamp = int(json.loads(msg.data)['stamp_ns'])
-        except (ValueError, KeyError, TypeError):
-            return
-        with self.lock:
-            self.samples_seen += 1
-            self.last_sample_stamp = stamp
-
     def _on_diag(self, msg):
         for st in msg.status:
             self.status_values[st.name] = {kv.key: kv.value for kv in st.values}
@@ -116,29 +104,30 @@ class RigClient(Participant):
         wait_until(ready, timeout, what='mock_hardware and inference connections',
                    processes=procs)
 
+    def camera_topics(self) -> list[str]:
+        """Every topic the rig's cameras publish: image, info and capture time, per view."""
+        t = self.cfg.topics
+        return [t.camera(k, v) for v in self.views
+                for k in ('camera_image', 'camera_info', 'capture_time')]
+
     def wait_recorder_subscribed(self, procs=(), timeout: float = 30.0) -> None:
         """Wait until something besides us subscribes to every camera and pressure topic."""
         t = self.cfg.topics
         ours = {t.pressure_measured: 1}
-        topics = [t.pressure_measured]
-        for v in self.views:
-            ours[t.camera('camera_image', v)] = 1
-            topics += [t.camera(k, v) for k in ('camera_image', 'camera_info', 'capture_time')]
+        ours.update({t.camera('camera_image', v): 1 for v in self.views})
+        topics = [t.pressure_measured] + self.camera_topics()
         wait_until(lambda: all(self.node.count_subscribers(x) > ours.get(x, 0) for x in topics),
                    timeout, what='the recorder to subscribe the rig topics', processes=procs)
-        self.wait_camera_writers_matched([x for x in topics if x != t.pressure_measured],
-                                         procs, timeout)
+        self.wait_camera_writers_matched(procs, timeout)
 
-    def wait_camera_writers_matched(self, topics=None, procs=(), timeout: float = 30.0):
+    def wait_camera_writers_matched(self, procs=(), timeout: float = 30.0) -> None:
         """
         Wait until mock_hardware's diagnostics say its writers match every reader seen.
 
         The graph shows a new reader before the writer has matched it, and a frame
         published in between never reaches it.
         """
-        t = self.cfg.topics
-        topics = topics or [t.camera(k, v) for v in self.views
-                            for k in ('camera_image', 'camera_info', 'capture_time')]
+        topics = self.camera_topics()
 
         def matched():
             said = self.status_values.get('mock_hardware: cameras', {})
@@ -147,24 +136,20 @@ class RigClient(Participant):
         wait_until(matched, timeout, what="mock_hardware's camera writers to match their readers",
                    processes=procs)
 
+    def recorded(self, topic: str) -> tuple[int, int]:
+        """Return (messages, newest source stamp ns) of ``topic`` in the recorder's diagnostics."""
+        said = self.status_values.get('recorder: bag', {})
+        return int(said.get(received_key(topic), 0)), int(said.get(newest_key(topic), 0))
+
     def wait_recorded_since(self, topics, stamp_ns: int, procs=(), timeout: float = 30.0):
         """
         Wait until the recorder has, on every topic, a message published at ``stamp_ns`` or later.
 
         A writer delivers in order, so the recorder then holds all that was published before.
         """
-        def newest() -> list:
-            said = self.status_values.get('recorder: bag', {})
-            return [int(said.get(newest_key(x), 0)) for x in topics]
-        wait_until(lambda: min(newest()) >= stamp_ns, timeout,
+        wait_until(lambda: min(self.recorded(x)[1] for x in topics) >= stamp_ns, timeout,
                    what=f'the recorder to have every message of {", ".join(topics)} up to the '
-                        'last trigger', processes=procs)
-
-    def wait_images_for_last_trigger(self, timeout: float) -> None:
-        stamp = self.last_sample_stamp
-        if stamp is not None:
-            wait_until(lambda: all(stamp in self.frames[v] for v in self.views), timeout,
-                       what='the last trigger\'s images')
+                        'last sample', processes=procs)
 
     def prepared(self, stamp: int) -> np.ndarray:
         """V x C x S x S of the camera frames with ``stamp`` (as the dataset builder does)."""
