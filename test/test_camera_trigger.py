@@ -132,6 +132,13 @@ def test_trigger_gets_the_frame_current_at_the_trigger(ros, tmp_path, kind):
     assert probe.last_level() == 0
     assert re.search(r"'n': 10\b", values()['trigger_to_capture_ms'])
     assert probe.best_effort                   # sensor-data (best effort) viewers match too
+    # Each writer's matched readers (what the collector's recorder wait reads): the probe's
+    # two image readers, its info and capture-time readers.
+    from softshape_ros.nodes.diagnostics import subscribers_key
+    t = node.cfg.topics
+    assert {k: values()[subscribers_key(t.camera(k, 'main'))]
+            for k in ('camera_image', 'camera_info', 'capture_time')} == {
+        'camera_image': '2', 'camera_info': '1', 'capture_time': '1'}
 
 
 def test_vanished_folder_gives_error_then_recovers(ros, tmp_path):

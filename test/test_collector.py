@@ -108,24 +108,54 @@ def test_list_mode_session_order_records_and_venting(ros, tmp_path):
 
 @pytest.mark.ros
 def test_the_first_scene_waits_until_the_named_recorder_is_matched(ros, tmp_path):
-    """A recorder started beside the collector (as the launch files do) misses nothing."""
+    """
+    A recorder started beside the collector (as the launch files do) misses nothing.
+
+    The collector's own writers it asks; the rig's (measured pressures, cameras) it believes
+    on /diagnostics, here said by a stand-in, first too few, then every reader.
+    """
     import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+    from sensor_msgs.msg import CameraInfo, Image, JointState, TimeReference
     from std_msgs.msg import Float64MultiArray, Header, String
 
     from softshape_ros.nodes.common import RELIABLE_QOS
+    from softshape_ros.nodes.diagnostics import subscribers_key
     resp = Responder(ros)
     col = _collector(ros, session=str(_session(tmp_path, 1, 2)), recorder='bag_probe')
+    own = ['/rig/pressure/command', '/rig/trigger', '/rig/sample']
+    rig = col.rig_topics
+    assert len(rig) == 1 + 3 * len(col.cfg.camera_names)     # measured; image, info, time
+
+    def waits_for(*reasons):
+        return lambda: col.rig_waiting_for() == '; '.join(reasons)
     # The rig is there (pressures, a trigger subscriber): only the recorder is missing.
-    ros.wait_for(lambda: col.rig_waiting_for() == '; '.join(
-        f'bag_probe does not subscribe to {t}'
-        for t in ('/rig/pressure/command', '/rig/trigger', '/rig/sample')),
-        what=lambda: f'waiting for the recorder alone: {col.rig_waiting_for()!r}')
+    ros.wait_for(waits_for(*(f'bag_probe does not subscribe to {t}' for t in own + rig)),
+                 what=lambda: f'waiting for the recorder alone: {col.rig_waiting_for()!r}')
     assert col.state == 'waiting for the rig' and col.samples == 0 and resp.scenes == []
     probe = ros.add(rclpy.create_node('bag_probe'))
     got = {'command': [], 'trigger': [], 'sample': []}
     for key, cls in (('command', Float64MultiArray), ('trigger', Header), ('sample', String)):
         topic = {'command': '/rig/pressure/command'}.get(key, f'/rig/{key}')
         probe.create_subscription(cls, topic, got[key].append, RELIABLE_QOS)
+    types = {'measured': JointState, 'image': Image, 'info': CameraInfo, 'time': TimeReference}
+    for topic in rig:
+        cls = next(c for k, c in types.items() if k in topic)
+        probe.create_subscription(cls, topic, lambda m: None, RELIABLE_QOS)
+    ros.wait_for(waits_for(*(f'{t}: no writer says on /diagnostics whom it matched'
+                             for t in rig)),
+                 what=lambda: f'the rig writers unsaid: {col.rig_waiting_for()!r}')
+    said = {t: 0 for t in rig}
+    writers = ros.add(rclpy.create_node('rig_writers'))
+    pub = writers.create_publisher(DiagnosticArray, '/diagnostics', 1)
+    writers.create_timer(0.05, lambda: pub.publish(DiagnosticArray(status=[DiagnosticStatus(
+        name='rig_writers: stand-in', values=[KeyValue(key=subscribers_key(t), value=str(n))
+                                              for t, n in said.items()])])))
+    ros.wait_for(lambda: col.rig_waiting_for() == '; '.join(
+        f'{t}: {col.count_subscribers(t)} subscribers, 0 matched by its writer' for t in rig),
+        what=lambda: f'too few matched: {col.rig_waiting_for()!r}')
+    assert col.samples == 0 and resp.scenes == []
+    said.update({t: col.count_subscribers(t) for t in rig})
     ros.wait_for(col.done.is_set, timeout=30, what='session done')
     ros.wait_for(lambda: len(got['sample']) == 3 and len(got['trigger']) == 3,
                  what=lambda: f'all three samples at the probe: {len(got["sample"])}')

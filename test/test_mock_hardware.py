@@ -133,6 +133,9 @@ def test_scene_and_trigger_give_images_and_bad_scene_is_ignored(ros):
     for topic in (t.camera('camera_image', 'side'), t.camera('camera_info', 'main'),
                   t.camera('capture_time', 'side')):
         assert said[subscribers_key(topic)] == '0'
+    ros.wait_for(lambda: subscribers_key(t.pressure_measured) in probe.diags.get(
+        'mock_hardware: pressure', ((), '', {}))[2], what='pressure diagnostics')
+    assert probe.diags['mock_hardware: pressure'][2][subscribers_key(t.pressure_measured)] == '1'
 
 
 def test_solver_error_gives_no_images_and_diagnostics_error(ros):

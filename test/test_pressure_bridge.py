@@ -185,6 +185,9 @@ def test_tracks_commands_rejects_bad_ones_and_serves_vent(ros, vdue):
         kv.key == 'clamped' and kv.value == '1' for kv in c.last_diag().values), 5,
         what='clamp reported in diagnostics')
     assert c.last_diag().level == b'\x01'      # WARN: clamped/rejected commands were seen
+    # the measured writer's matched readers, for the collector's recorder wait: ours alone
+    said = {kv.key: kv.value for kv in c.last_diag().values}
+    assert said[f'subscribers {CFG.topics.pressure_measured}'] == '1'
 
     # ~/vent
     resp = c.call(c.vent, c.Trigger.Request())

@@ -37,6 +37,7 @@ SCRATCH_ARCH = 'ours'       # trained from scratch on the bag alone (no shape re
 # tube 2e-3). Tube at 3e-4 for 150 steps on the demo's bag: validation IoU 0.975 -> 0.984.
 FINETUNE_LR = {'paper': 1e-3, 'ours': 1e-3, 'tube': 3e-4}
 # What the live stage must reach on unseen placements (issue 18).
+STALL_S = 60.0              # the record stage gives up when no sample reaches the bag this long
 LIVE_TARGETS = {'silhouette_iou': 0.95, 'tip_error_px': 2.0, 'yellow_vs_copy': 0.5}
 
 
@@ -167,31 +168,37 @@ def record(settings: DemoSettings, stage: Stage, cfg) -> dict:
     logs = root / 'logs'
     total = settings.scenes * (settings.actuations + 1)
     with RigClient(cfg) as client:
-        # Triggers only: a free-running camera would put 30 Hz frames into the bag.
-        mock = NodeProcess('mock_hardware', {'seed': settings.seed, 'free_run_hz': 0.0},
-                           log_dir=logs).start()
-        recorder = NodeProcess('recorder', {'output': str(bag)}, log_dir=logs).start()
-        procs = [mock, recorder]
+        procs = []
         try:
-            client.wait_for_node('mock_hardware', procs)
-            client.wait_for_node('recorder', procs)
-            client.wait_recorder_subscribed(procs)
-            collector = NodeProcess('collector', {
-                'session': str(session), 'simulated': True, 'rate_hz': settings.rate_hz,
-                'seed': settings.seed, 'wait_for_frames': True, 'recorder': 'recorder'},
-                log_dir=logs).start()
-            procs.append(collector)
+            # As the launch files do: all three at once, and the collector's first scene waits
+            # until the recorder subscribes to every rig topic and each writer has matched it.
+            # Triggers only: a free-running camera would put 30 Hz frames into the bag.
+            for name, params in (
+                    ('mock_hardware', {'seed': settings.seed, 'free_run_hz': 0.0}),
+                    ('recorder', {'output': str(bag)}),
+                    ('collector', {'session': str(session), 'simulated': True,
+                                   'rate_hz': settings.rate_hz, 'seed': settings.seed,
+                                   'wait_for_frames': True, 'recorder': 'recorder'})):
+                procs.append(NodeProcess(name, params, log_dir=logs).start())
+            collector = procs[-1]
             t0 = time.monotonic()
             t = cfg.topics
             # Progress as the recorder counts it: the collector waits until the recorder's
             # readers are matched, not ours, so our own subscription may miss the first.
             with tqdm(total=total, desc='recording samples', unit='trigger') as bar:
+                seen_at = time.monotonic()
                 while (n := client.recorded(t.sample)[0]) < total:
                     for p in procs:
                         p.check_alive()
                     if client.collector_failed:
                         raise RuntimeError(f'collector failed: {client.collector_failed}')
-                    bar.update(n - bar.n)
+                    if n > bar.n:
+                        bar.update(n - bar.n)
+                        seen_at = time.monotonic()
+                    elif time.monotonic() - seen_at > STALL_S:
+                        raise RuntimeError(
+                            f'no sample recorded for {STALL_S:g} s; collector: '
+                            f'{client.collector_state or "not on /diagnostics"}; see {logs}')
                     time.sleep(0.2)
                 bar.update(total - bar.n)
             # Every sample is in the bag; the rest up to the last one is once each topic has

@@ -38,6 +38,7 @@ class RigClient(Participant):
         self.size = cfg.dataset.image_size
         self.lock = threading.Lock()
         self.collector_failed = ''
+        self.collector_state = ''
         self.inference_state = ''
         self.inference_scene = ''       # the scene inference last said it is on
         self.inference_values: dict = {}
@@ -66,8 +67,10 @@ class RigClient(Participant):
         for st in msg.status:
             self.status_values[st.name] = {kv.key: kv.value for kv in st.values}
             level = st.level[0] if isinstance(st.level, (bytes, bytearray)) else int(st.level)
-            if st.name.endswith(': session') and level == 2 and 'failed' in st.message:
-                self.collector_failed = st.message
+            if st.name.endswith(': session'):
+                self.collector_state = st.message
+                if level == 2 and 'failed' in st.message:
+                    self.collector_failed = st.message
             if 'inference' in st.name:
                 self.inference_state = st.message
                 self.inference_values = {kv.key: kv.value for kv in st.values}
@@ -109,16 +112,6 @@ class RigClient(Participant):
         t = self.cfg.topics
         return [t.camera(k, v) for v in self.views
                 for k in ('camera_image', 'camera_info', 'capture_time')]
-
-    def wait_recorder_subscribed(self, procs=(), timeout: float = 30.0) -> None:
-        """Wait until something besides us subscribes to every camera and pressure topic."""
-        t = self.cfg.topics
-        ours = {t.pressure_measured: 1}
-        ours.update({t.camera('camera_image', v): 1 for v in self.views})
-        topics = [t.pressure_measured] + self.camera_topics()
-        wait_until(lambda: all(self.node.count_subscribers(x) > ours.get(x, 0) for x in topics),
-                   timeout, what='the recorder to subscribe the rig topics', processes=procs)
-        self.wait_camera_writers_matched(procs, timeout)
 
     def wait_camera_writers_matched(self, procs=(), timeout: float = 30.0) -> None:
         """

@@ -21,7 +21,7 @@ from softshape_ros.nodes.clocks import ros_now_ns, steady_timer, wall_to_ros_ns
 from softshape_ros.nodes.common import (IMAGE_QOS, RELIABLE_QOS, SENSOR_QOS, declare_rig_config,
                                         main_wrapper, ns_to_stamp, numpy_to_image, stamp_to_ns)
 from softshape_ros.nodes.diagnostics import (ERROR, OK, WARN, TriggeredRate, Updater, fill,
-                                             topic_frequency)
+                                             matched_subscribers, topic_frequency)
 from softshape_ros.nodes.parameters import Param, declare
 from softshape_ros.vision.camera_info import (Calibration, CalibrationError, load_calibration,
                                               resolve_url, save_calibration)
@@ -278,6 +278,7 @@ class CameraTrigger(Node):
             'pairs_over_bound': self.skew.flagged,
             'skew_bound_ms': self.skew_bound_s * 1e3,
             'last_flagged_stamp_ns': self.skew.last_flagged_stamp_ns,
+            **matched_subscribers([self.pub_image, self.pub_info, self.pub_time]),
         }
         if self.source is None:
             level, message = ERROR, f'no camera: {self.error}'

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import threading
 
+from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.duration import Duration
 from rclpy.node import Node
 from sensor_msgs.msg import JointState, TimeReference
@@ -22,7 +23,7 @@ from std_srvs.srv import Trigger
 from softshape_ros.nodes.common import (LATCHED_QOS, RELIABLE_QOS, declare_rig_config,
                                         log_at, main_wrapper, ns_to_stamp,
                                         stamp_to_ns)
-from softshape_ros.nodes.diagnostics import ERROR, OK, WARN, Updater, fill
+from softshape_ros.nodes.diagnostics import ERROR, OK, WARN, Updater, fill, subscribers_topic
 from softshape_ros.nodes.parameters import Param, declare
 from softshape_ros.scene import SceneError, load_session
 from softshape_ros.session import (CollectionSession, CommandPlan, SampleRecord, SessionError,
@@ -54,6 +55,9 @@ PARAMETERS = [
           (0.0, 3600.0)),
     Param('recorder', '', "a recorder node's name ('' = none): the first scene waits until "
           'it subscribes to the command, trigger and sample topics and they have matched it'),
+    Param('wait_rig_writers', True, 'with `recorder`: also until the recorder subscribes to the '
+          "measured pressures and every camera topic, and their writers' /diagnostics say "
+          "(subscribers <topic>) they matched every reader; false for drivers that do not"),
 ]
 
 
@@ -84,6 +88,14 @@ class Collector(Node):
             wait_for_frames=p.wait_for_frames, frame_timeout_s=p.frame_timeout_s,
             next_scene_service=f'{self.get_fully_qualified_name()}/next_scene')
         self.recorder = p.recorder
+        t = self.cfg.topics
+        # Topics others write that the recorder must get from the first frame, and what
+        # their writers last said of their matched readers: (status name, topic) -> count.
+        self.rig_topics = [t.pressure_measured] + [
+            t.camera(name, cam) for cam in self.cfg.camera_names
+            for name in ('camera_image', 'camera_info', 'capture_time')
+        ] if self.recorder and p.wait_rig_writers else []
+        self._writers_said: dict[tuple[str, str], int] = {}
         self.feedback = RigFeedback(self.cfg.chamber_names, self.cfg.camera_names)
         self.session = None
         if session_file:
@@ -96,7 +108,6 @@ class Collector(Node):
             self.session = CollectionSession(scenes, plan, self.settings, self, self.feedback,
                                              self.limits)
 
-        t = self.cfg.topics
         self.pub_command = self.create_publisher(Float64MultiArray, t.pressure_command,
                                                  RELIABLE_QOS)
         self.pub_trigger = self.create_publisher(Header, t.trigger, RELIABLE_QOS)
@@ -110,6 +121,9 @@ class Collector(Node):
                 lambda m, c=cam: self.feedback.add_frame(c, stamp_to_ns(m.header.stamp)),
                 RELIABLE_QOS)
         self.create_service(Trigger, '~/next_scene', self._on_next_scene)
+        if self.rig_topics:
+            self.create_subscription(DiagnosticArray, t.diagnostics, self._on_diagnostics,
+                                     RELIABLE_QOS)
         self.diagnostics = Updater(self)
         self.diagnostics.setHardwareID('none')
         self.diagnostics.add('session', self._diagnose)
@@ -146,6 +160,16 @@ class Collector(Node):
             self.get_logger().warning(f'malformed measured pressures {list(msg.name)} '
                                       f'{list(msg.effort)}: ignored', throttle_duration_sec=5.0)
 
+    def _on_diagnostics(self, msg: DiagnosticArray) -> None:
+        for status in msg.status:
+            for kv in status.values:
+                topic = subscribers_topic(kv.key)
+                if topic in self.rig_topics:
+                    try:
+                        self._writers_said[(status.name, topic)] = int(kv.value)
+                    except ValueError:
+                        pass               # not a count: as if unsaid
+
     def _on_next_scene(self, request, response):
         if self.session is not None:
             self.session.operator_ready()
@@ -169,12 +193,13 @@ class Collector(Node):
 
     def _recorder_missing(self) -> list[str]:
         """
-        Say which of our topics the recorder does not yet take everything from.
+        Say which topics the recorder does not yet take everything from.
 
-        The graph shows its subscription before our writer has matched it, and a message
+        The graph shows its subscription before the writer has matched it, and a message
         published in between is not in the bag: so each writer must have matched every
         reader the graph shows (one that never matches, say of an incompatible QoS, keeps
-        the session waiting, logged every 5 s).
+        the session waiting, logged every 5 s). Ours we ask; the rig's writers (the Due
+        bridge's measured pressures, the cameras) say it on /diagnostics, at its period.
         """
         out = []
         for pub in (self.pub_command, self.pub_trigger, self.pub_sample):
@@ -184,6 +209,17 @@ class Collector(Node):
                 out.append(f'{self.recorder} does not subscribe to {pub.topic_name}')
             elif matched < len(readers):
                 out.append(f'{pub.topic_name}: {len(readers)} subscribers, {matched} matched')
+        said = dict(self._writers_said)
+        for topic in self.rig_topics:
+            readers = self.get_subscriptions_info_by_topic(topic)
+            counts = [n for (_, x), n in said.items() if x == topic]
+            if not any(r.node_name == self.recorder for r in readers):
+                out.append(f'{self.recorder} does not subscribe to {topic}')
+            elif not counts:
+                out.append(f'{topic}: no writer says on /diagnostics whom it matched')
+            elif min(counts) < len(readers):
+                out.append(f'{topic}: {len(readers)} subscribers, {min(counts)} matched by '
+                           'its writer')
         return out
 
     def send(self, pressures_pa) -> None:

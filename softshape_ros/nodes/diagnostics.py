@@ -301,9 +301,28 @@ def newest_key(topic: str) -> str:
     return f'newest {topic}'
 
 
+SUBSCRIBERS = 'subscribers '
+
+
 def subscribers_key(topic: str) -> str:
     """Return the key of how many readers a node's writer on ``topic`` has matched."""
-    return f'subscribers {topic}'
+    return f'{SUBSCRIBERS}{topic}'
+
+
+def subscribers_topic(key: str) -> str | None:
+    """Return the topic of a :func:`subscribers_key`, or None for any other key."""
+    return key[len(SUBSCRIBERS):] if key.startswith(SUBSCRIBERS) else None
+
+
+def matched_subscribers(publishers) -> dict:
+    """
+    Return each writer's matched readers as ``subscribers <topic>`` diagnostic values.
+
+    The graph shows a new reader before the writer has matched it, and a message published
+    in between never reaches it: the collector's ``recorder`` wait reads these to know that
+    a recorder gets the rig's first frames.
+    """
+    return {subscribers_key(pub.topic_name): pub.get_subscription_count() for pub in publishers}
 
 
 def fill(stat, level, message: str, values: dict, hardware_id: str = ''):

@@ -31,7 +31,7 @@ from softshape_ros.nodes.camera_trigger import camera_info_msg, time_reference_m
 from softshape_ros.nodes.common import (IMAGE_QOS, LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS,
                                         declare_rig_config, log_at, main_wrapper, ns_to_stamp,
                                         numpy_to_image, stamp_to_ns)
-from softshape_ros.nodes.diagnostics import (ERROR, OK, WARN, Updater, fill, subscribers_key,
+from softshape_ros.nodes.diagnostics import (ERROR, OK, WARN, Updater, fill, matched_subscribers,
                                              topic_frequency)
 from softshape_ros.nodes.parameters import Param, declare
 from softshape_ros.pressure import CommandError, FirstOrderRegulator, check_command
@@ -217,7 +217,8 @@ class MockHardware(Node):
         return fill(stat, WARN if bad else OK, self.last_error if self.rejected else 'regulating',
                     {'measured_pa': [round(float(v)) for v in self.regulator.pressure],
                      'rejected_commands': self.rejected, 'clamped_commands': self.clamped,
-                     'watchdog_vents': self.watchdog_vents}, 'simulated regulators')
+                     'watchdog_vents': self.watchdog_vents,
+                     **matched_subscribers([self.pub_measured])}, 'simulated regulators')
 
     def _diagnose_cameras(self, stat):
         c = self.cameras
@@ -239,15 +240,9 @@ class MockHardware(Node):
                      **self._matched_subscribers()}, 'SimRig')
 
     def _matched_subscribers(self) -> dict:
-        """
-        Return each camera topic's readers our writer has matched (``subscribers <topic>``).
-
-        The graph shows a new reader before the writer matches it; a frame published in
-        between misses it. A recorder's user waits on this before triggering.
-        """
-        return {subscribers_key(pub.topic_name): pub.get_subscription_count()
-                for pubs in (self.pub_image, self.pub_info, self.pub_time)
-                for pub in pubs.values()}
+        """Return each camera writer's matched readers (what the collector's wait reads)."""
+        return matched_subscribers(pub for pubs in (self.pub_image, self.pub_info, self.pub_time)
+                                   for pub in pubs.values())
 
     def on_shutdown(self) -> None:
         self.cameras.stop()

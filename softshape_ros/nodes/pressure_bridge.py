@@ -27,7 +27,8 @@ from softshape_ros.hardware.link import DueLink, LinkDown
 from softshape_ros.pressure import CommandError, check_command
 from softshape_ros.nodes.clocks import ros_now_ns, steady_timer
 from softshape_ros.nodes.common import RELIABLE_QOS, declare_rig_config, main_wrapper, ns_to_stamp
-from softshape_ros.nodes.diagnostics import ERROR, OK, WARN, Updater, fill, topic_frequency
+from softshape_ros.nodes.diagnostics import (ERROR, OK, WARN, Updater, fill,
+                                             matched_subscribers, topic_frequency)
 from softshape_ros.nodes.parameters import Param, declare
 
 
@@ -298,7 +299,8 @@ class PressureBridge(LifecycleNode):
         link, lifecycle = self.link, self.lifecycle
         if link is None:
             values = {'lifecycle': lifecycle, 'port': self.port,
-                      'limits_pa': [round(x) for x in self.limits]}
+                      'limits_pa': [round(x) for x in self.limits],
+                      **matched_subscribers([self.pub_measured])}
             if self.config_error:
                 return fill(stat, ERROR, f'{self.config_error} (configure failed)', values)
             return fill(stat, WARN, f'{lifecycle}: port closed', values)
@@ -320,7 +322,8 @@ class PressureBridge(LifecycleNode):
         values.update(self.counts)
         values.update({'lifecycle': lifecycle, 'holding': self.holding,
                        'last_reject': self.last_reject, 'last_event': self.last_event,
-                       'watchdog_timeout_s': self.params.watchdog_timeout_s})
+                       'watchdog_timeout_s': self.params.watchdog_timeout_s,
+                       **matched_subscribers([self.pub_measured])})
         return fill(stat, level, text, values)
 
     def _refuse_unavailable_transitions(self) -> None:
