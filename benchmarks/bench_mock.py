@@ -142,13 +142,16 @@ def stream(tree: str | None, free_run_hz: float, window_s: float, triggers: int)
 def record_stage(tree: str | None, scenes: int, actuations: int) -> dict:
     """Run the demo's record stage (its own processes) from ``tree``; return its timing."""
     out_dir = tempfile.mkdtemp(prefix='bench_record_')
-    code = ('import json, sys\n'
+    # wall_s: the whole stage, process starts and stops included (comparable between trees
+    # whose `seconds` start at different points).
+    code = ('import json, sys, time\n'
             'from softshape_ros.config import load_rig_config\n'
             'from softshape_ros.demo.pipeline import DemoSettings, Stage, record\n'
             f's = DemoSettings(out={out_dir!r}, scenes={scenes}, actuations={actuations})\n'
+            't0 = time.monotonic()\n'
             'r = record(s, Stage(s, "record", True), load_rig_config())\n'
             'print(json.dumps({"seconds": r["seconds"], "triggers": r["triggers"], '
-            '"exit_codes": r["exit_codes"]}))\n')
+            '"wall_s": round(time.monotonic() - t0, 1), "exit_codes": r["exit_codes"]}))\n')
     res = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
                          env=_env(tree), cwd=tree or str(ROOT))
     if res.returncode != 0:

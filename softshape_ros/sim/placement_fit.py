@@ -35,6 +35,7 @@ START_SPREAD = 1.0      # mm (and 0.1 rad) around the reading for the restarts
 SCALES = (1.0, 0.5, 0.25, 0.1)      # Nelder-Mead simplex sizes, one run each
 MAX_EVALS = 1500        # per run
 SCREEN_EVALS = 300      # a short first run from each of several readings, best first
+RETYPE_MSE = 1.0        # gray levels^2: a match this poor may be a misread kind: try the others
 CLEARANCE_COST = 100.0  # gray levels^2 per mm^2 short of the clearance: a wall to the images
 # Roll and pitch of an object standing as the rig's objects stand: cylinders and prisms on
 # end, rings on edge (the simulated placements' and the lab's).
@@ -104,6 +105,32 @@ def quarter(scene: Scene) -> Scene:
 def flipped(scene: Scene) -> Scene:
     """Lean a prism the other way (skew negated, nothing else)."""
     return replace(scene, dims=dict(scene.dims, skew_rad=-scene.dims['skew_rad']))
+
+
+def retyped(scene: Scene, kind: str) -> Scene:
+    """
+    Return ``scene``'s object as another kind of about its extent, at its place.
+
+    The objects are centred on their position, so only the sizes change: a half width and
+    a half height carried over (a ring on edge is as wide as it is tall, its tube a third
+    of its radius). Yaw is kept where both kinds have one (a cylinder's is zero).
+    """
+    d = scene.dims
+    half_w, half_h = {
+        'cylinder': lambda: (d['radius_m'], d['height_m'] / 2),
+        'prism': lambda: ((d['width_m'] + d['depth_m']) / 4, d['height_m'] / 2),
+        'ring': lambda: (d['major_radius_m'] + d['minor_radius_m'],) * 2,
+    }[scene.object]()
+    if kind == 'cylinder':
+        dims = {'radius_m': half_w, 'height_m': 2 * half_h}
+    elif kind == 'prism':
+        dims = {'width_m': 2 * half_w, 'depth_m': 2 * half_w, 'height_m': 2 * half_h,
+                'skew_rad': 0.0}
+    else:
+        outer = max(half_w, half_h)
+        dims = {'major_radius_m': 0.75 * outer, 'minor_radius_m': 0.25 * outer}
+    yaw = 0.0 if 'cylinder' in (kind, scene.object) else scene.rpy_rad[2]
+    return replace(scene, object=kind, dims=dims, rpy_rad=(*UPRIGHT[kind], yaw))
 
 
 def readings(scene: Scene) -> list[Scene]:
@@ -207,7 +234,9 @@ class PlacementFit:
         good (GOOD_MSE), ``max_starts`` at most; a prism first from the best of its eight
         :func:`readings` after a short run from each (a reader may read its half turn,
         lean or width for depth wrong), and a prism still matched poorly once more from
-        its fitted position in its other descriptions (:meth:`_redescribed`).
+        its fitted position in its other descriptions (:meth:`_redescribed`). A match
+        poorer still (RETYPE_MSE) is tried as the other kinds (:meth:`_retyped`): the
+        result may be another kind than the reading's.
         """
         img = self._images(images)
         up = self.upright
@@ -238,7 +267,10 @@ class PlacementFit:
                 best_x, best_f = x, fx
         if best_f >= GOOD_MSE and reading.object == 'prism':
             best_x, best_f = self._redescribed(cost, reading, best_x, best_f)
-        scene = placement_scene(reading, best_x, up)
+        template = reading
+        if best_f >= RETYPE_MSE:
+            template, best_x, best_f = self._retyped(img, reading, best_x, best_f, evals)
+        scene = placement_scene(template, best_x, up)
         rendered = self.render(scene)
         return FitResult(scene, float(((rendered - img) ** 2).mean()), evals[0], starts,
                          self._hidden(rendered))
@@ -282,6 +314,35 @@ class PlacementFit:
             if fs < fy:
                 y, fy = ys, fs
         return (y, fy) if fy < fx else (x, fx)
+
+    def _retyped(self, img, reading: Scene, x, fx: float,
+                 evals: list) -> tuple[Scene, np.ndarray, float]:
+        """
+        Try the reading as each other kind: (the kind's template, best x, its cost).
+
+        A reader can take a prism for a cylinder and the other way round (2 of the 400
+        seed-42 test placements); the fit then stays poor whatever it moves. Each other
+        kind gets a short run from each of its descriptions (:func:`retyped`,
+        :func:`readings`) at the reader's place, and the best is run on at the finer steps.
+        """
+        up, tries = self.upright, []
+        for kind in UPRIGHT:
+            if kind == reading.object:
+                continue
+            objective = self.objective(img, retyped(reading, kind))
+
+            def cost(t, objective=objective) -> float:
+                evals[0] += 1
+                return objective(t)
+            for r in readings(retyped(reading, kind)):
+                y, fy = self._run(cost, placement_params(r, up), SCALES[0], SCREEN_EVALS)
+                tries.append((fy, r, y, cost))
+        fy, template, y, cost = min(tries, key=lambda t: t[0])
+        for scale in SCALES[1:]:
+            ys, fs = self._run(cost, y, scale, MAX_EVALS)
+            if fs < fy:
+                y, fy = ys, fs
+        return (template, y, fy) if fy < fx else (reading, x, fx)
 
     @staticmethod
     def _run(cost, x, scale: float, evals: int) -> tuple[np.ndarray, float]:
