@@ -364,11 +364,10 @@ class PlacementFit:
                 y, fy = self._run(cost, placement_params(other, up), SCALES[0], SCREEN_EVALS)
                 tries.append((fy, placement_scene(other, y, up)))
         fy, other = min(tries, key=lambda t: t[0])
-        if fy < fx:
-            y, fy, starts = self._fit_kind(img, other, rng, evals)
-            if fy < fx:
-                return other, y, fy, starts
-        return reading, x, fx, 0
+        if fy >= fx:
+            return reading, x, fx, 0
+        y, fy, starts = self._fit_kind(img, other, rng, evals)
+        return (other, y, fy, starts) if fy < fx else (reading, x, fx, starts)
 
     @staticmethod
     def _run(cost, x, scale: float, evals: int) -> tuple[np.ndarray, float]:
