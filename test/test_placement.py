@@ -7,6 +7,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import torch
+from scipy import ndimage
 
 from softshape_ros.config import load_rig_config
 from softshape_ros.data import load_dataset
@@ -100,7 +101,9 @@ def test_the_fit_keeps_objects_upright_and_clear_of_the_robot(stereo):
     far = PlacementFit(CFG, VIEWS, min_clearance_m=c + 0.004, max_starts=2)
     held = far.fit(image, truth)
     assert far.clearance(held.scene) > c + 0.004 - 3e-4
-    assert held.mse > r.mse
+    assert held.mse > r.mse > 0
+    assert held.scene.object == 'cylinder'   # held by the wall, not taken for another kind
+    assert not far.misread(image, held.scene, held.mse)
 
 
 def test_a_prism_fit_stalled_in_one_description_is_tried_in_the_others():
@@ -153,6 +156,12 @@ def test_a_cylinder_read_as_a_prism_is_fitted_as_a_cylinder():
                                       evals)
     found = placement_scene(kind, y, upright=True)
     assert found.object == 'cylinder' and f < GOOD_MSE and starts >= 2 and evals[0] > 0
+    assert fit.misread(image, stalled, f_stalled)
+    # A match poor everywhere alike (frames resampled otherwise than the fit renders) is
+    # not a misread: the truth, blurred a little, 29 gray levels squared off.
+    soft = ndimage.gaussian_filter(fit.render(truth), (0, 0.6, 0.6))
+    assert fit.mse(truth, soft) > 10 * RETYPE_MSE and not fit.misread(
+        soft, truth, fit.mse(truth, soft))
     assert np.abs(np.subtract(found.position_m, truth.position_m)).max() < 3e-4
     assert abs(found.dims['radius_m'] - truth.dims['radius_m']) < 3e-4
     # Each kind as another of its extent, at its place; turned where turning shows.

@@ -21,6 +21,7 @@ import math
 from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy import ndimage
 from scipy.optimize import minimize
 
 from softshape_ros.config import RigConfig
@@ -35,7 +36,7 @@ START_SPREAD = 1.0      # mm (and 0.1 rad) around the reading for the restarts
 SCALES = (1.0, 0.5, 0.25, 0.1)      # Nelder-Mead simplex sizes, one run each
 MAX_EVALS = 1500        # per run
 SCREEN_EVALS = 300      # a short first run from each of several readings, best first
-RETYPE_MSE = 1.0        # gray levels^2: a match this poor may be a misread kind: try the others
+RETYPE_MSE = 1.0        # gray levels^2 beyond the images' own: may be a misread kind (misread)
 CLEARANCE_COST = 100.0  # gray levels^2 per mm^2 short of the clearance: a wall to the images
 # Roll and pitch of an object standing as the rig's objects stand: cylinders and prisms on
 # end, rings on edge (the simulated placements' and the lab's).
@@ -251,21 +252,41 @@ class PlacementFit:
         :func:`readings` after a short run from each (a reader may read its half turn,
         lean or width for depth wrong), and a prism still matched poorly once more from
         its fitted position in its other descriptions (:meth:`_redescribed`). A match
-        poorer still (RETYPE_MSE) may be a misread kind (:meth:`_retyped`): the result
-        may be another kind than the reading's.
+        poorer still (:meth:`misread`) may be a misread kind (:meth:`_retyped`): the
+        result may be another kind than the reading's.
         """
         img = self._images(images)
         rng = np.random.default_rng(seed)
         evals = [0]
         x, f, starts = self._fit_kind(img, reading, rng, evals)
         template = reading
-        if f >= RETYPE_MSE:
+        if self.misread(img, placement_scene(reading, x, self.upright), f):
             template, x, f, more = self._retyped(img, reading, x, f, rng, evals)
             starts += more
         scene = placement_scene(template, x, self.upright)
         rendered = self.render(scene)
         return FitResult(scene, float(((rendered - img) ** 2).mean()), evals[0], starts,
                          self._hidden(rendered))
+
+    def misread(self, images, scene: Scene, mse: float) -> bool:
+        """
+        Say whether ``scene``, matched to ``images`` at ``mse``, may be a misread kind.
+
+        Its match must be poorer than RETYPE_MSE beyond what the images cost away from the
+        object (more than 2 px from where it changes the rendering by a gray level): about
+        nothing on the simulator's own images, but on a rig's camera frames every edge is
+        off a little (9 gray levels squared on the mock rig's), and a good match there is
+        no reason to try other kinds. Nor is a match held off by ``min_clearance_m``:
+        another kind would only find a way round the wall.
+        """
+        if mse < RETYPE_MSE or (self.min_clearance_m > 0
+                                and self.clearance(scene) < self.min_clearance_m + 5e-4):
+            return False
+        img, rendered = self._images(images), self.render(scene)
+        near = ndimage.binary_dilation(np.abs(rendered - self.robot_alone) > 1.0,
+                                       structure=np.ones((1, 5, 5), bool))
+        away = ((rendered - img) ** 2)[~near]
+        return mse - (float(away.mean()) if away.size else 0.0) >= RETYPE_MSE
 
     def _fit_kind(self, img, reading: Scene, rng, evals: list) -> tuple[np.ndarray, float, int]:
         """Fit ``reading``'s kind from it, as :meth:`fit` says: (best x, its cost, starts)."""
