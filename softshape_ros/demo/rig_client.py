@@ -19,7 +19,7 @@ from std_msgs.msg import Float64MultiArray, Header, String
 from softshape_ros.nodes.common import (IMAGE_QOS, LATCHED_QOS, RELIABLE_QOS, image_to_numpy,
                                         ns_to_stamp, stamp_to_ns)
 from softshape_ros.demo.participant import Participant
-from softshape_ros.nodes.diagnostics import newest_key, received_key, subscribers_key
+from softshape_ros.nodes.diagnostics import newest_key, received_key, writers_matched
 from softshape_ros.processes import wait_until
 from softshape_ros.vision.preprocess import preprocess
 
@@ -123,8 +123,8 @@ class RigClient(Participant):
         topics = self.camera_topics()
 
         def matched():
-            said = self.status_values.get('mock_hardware: cameras', {})
-            return all(int(said.get(subscribers_key(x), -1)) >= self.node.count_subscribers(x)
+            said = {'cameras': self.status_values.get('mock_hardware: cameras', {})}
+            return all(min(writers_matched(said, x), default=-1) >= self.node.count_subscribers(x)
                        for x in topics)
         wait_until(matched, timeout, what="mock_hardware's camera writers to match their readers",
                    processes=procs)

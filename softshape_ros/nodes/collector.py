@@ -23,7 +23,8 @@ from std_srvs.srv import Trigger
 from softshape_ros.nodes.common import (LATCHED_QOS, RELIABLE_QOS, declare_rig_config,
                                         log_at, main_wrapper, ns_to_stamp,
                                         stamp_to_ns)
-from softshape_ros.nodes.diagnostics import ERROR, OK, WARN, Updater, fill, subscribers_topic
+from softshape_ros.nodes.diagnostics import (ERROR, OK, WARN, Updater, fill, subscribers_topic,
+                                             writers_matched)
 from softshape_ros.nodes.parameters import Param, declare
 from softshape_ros.scene import SceneError, load_session
 from softshape_ros.session import (CollectionSession, CommandPlan, SampleRecord, SessionError,
@@ -90,12 +91,12 @@ class Collector(Node):
         self.recorder = p.recorder
         t = self.cfg.topics
         # Topics others write that the recorder must get from the first frame, and what
-        # their writers last said of their matched readers: (status name, topic) -> count.
+        # their writers last said of their matched readers: status name -> key -> value.
         self.rig_topics = [t.pressure_measured] + [
             t.camera(name, cam) for cam in self.cfg.camera_names
             for name in ('camera_image', 'camera_info', 'capture_time')
         ] if self.recorder and p.wait_rig_writers else []
-        self._writers_said: dict[tuple[str, str], int] = {}
+        self._writers_said: dict[str, dict[str, str]] = {}
         self.feedback = RigFeedback(self.cfg.chamber_names, self.cfg.camera_names)
         self.session = None
         if session_file:
@@ -162,13 +163,10 @@ class Collector(Node):
 
     def _on_diagnostics(self, msg: DiagnosticArray) -> None:
         for status in msg.status:
-            for kv in status.values:
-                topic = subscribers_topic(kv.key)
-                if topic in self.rig_topics:
-                    try:
-                        self._writers_said[(status.name, topic)] = int(kv.value)
-                    except ValueError:
-                        pass               # not a count: as if unsaid
+            said = {kv.key: kv.value for kv in status.values
+                    if subscribers_topic(kv.key) in self.rig_topics}
+            if said:
+                self._writers_said[status.name] = said
 
     def _on_next_scene(self, request, response):
         if self.session is not None:
@@ -212,7 +210,7 @@ class Collector(Node):
         said = dict(self._writers_said)
         for topic in self.rig_topics:
             readers = self.get_subscriptions_info_by_topic(topic)
-            counts = [n for (_, x), n in said.items() if x == topic]
+            counts = writers_matched(said, topic)
             if not any(r.node_name == self.recorder for r in readers):
                 out.append(f'{self.recorder} does not subscribe to {topic}')
             elif not counts:

@@ -314,6 +314,22 @@ def subscribers_topic(key: str) -> str | None:
     return key[len(SUBSCRIBERS):] if key.startswith(SUBSCRIBERS) else None
 
 
+def writers_matched(said: dict, topic: str) -> list[int]:
+    """
+    Return the readers each status in ``said`` says its writer on ``topic`` has matched.
+
+    ``said``: status name -> key -> value, as :func:`matched_subscribers` fills them; a
+    value that is not a count is left out, as if unsaid.
+    """
+    out = []
+    for values in said.values():
+        try:
+            out.append(int(values[subscribers_key(topic)]))
+        except (KeyError, ValueError):
+            pass
+    return out
+
+
 def matched_subscribers(publishers) -> dict:
     """
     Return each writer's matched readers as ``subscribers <topic>`` diagnostic values.

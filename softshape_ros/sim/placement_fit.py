@@ -292,12 +292,7 @@ class PlacementFit:
         """Fit ``reading``'s kind from it, as :meth:`fit` says: (best x, its cost, starts)."""
         up = self.upright
         x_read = placement_params(reading, up)
-        objective = self.objective(img, reading)
-
-        def cost(t):
-            evals[0] += 1
-            return objective(t)
-
+        cost = self.objective(img, reading, evals)
         firsts = [placement_params(r, up) for r in readings(reading)]
         if len(firsts) > 1:                 # screen them: a short run each, best first
             screened = [self._run(cost, x, SCALES[0], SCREEN_EVALS) for x in firsts]
@@ -318,16 +313,19 @@ class PlacementFit:
             best_x, best_f = self._redescribed(cost, reading, best_x, best_f)
         return best_x, best_f, starts
 
-    def objective(self, images, template: Scene):
+    def objective(self, images, template: Scene, evals: list | None = None):
         """
         Return the fit's cost of :func:`placement_params` (``template`` gives the kind).
 
         The mean squared gray-level error of the rendering against ``images``, plus a wall
-        where the object comes closer to the robot than ``min_clearance_m``.
+        where the object comes closer to the robot than ``min_clearance_m``. ``evals``: a
+        one-item list, counted up at every call.
         """
         img, up = self._images(images), self.upright
 
         def cost(t) -> float:
+            if evals is not None:
+                evals[0] += 1
             try:
                 scene = placement_scene(template, t, up)
                 err = float(((self.render(scene) - img) ** 2).mean())
@@ -376,12 +374,9 @@ class PlacementFit:
         for kind in UPRIGHT:
             if kind == reading.object:
                 continue
-            objective = self.objective(img, retyped(here, kind))
-
-            def cost(t, objective=objective) -> float:
-                evals[0] += 1
-                return objective(t)
-            for other in turns(retyped(here, kind)):
+            template = retyped(here, kind)
+            cost = self.objective(img, template, evals)
+            for other in turns(template):
                 y, fy = self._run(cost, placement_params(other, up), SCALES[0], SCREEN_EVALS)
                 tries.append((fy, placement_scene(other, y, up)))
         fy, other = min(tries, key=lambda t: t[0])
